@@ -1,0 +1,1 @@
+"""skyloop's bus package (see DESIGN.md)."""

@@ -1,0 +1,1 @@
+"""skyloop's mavlink_bridge package (see DESIGN.md)."""

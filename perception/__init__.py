@@ -1,0 +1,1 @@
+"""skyloop's perception package (see DESIGN.md)."""

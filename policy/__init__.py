@@ -1,0 +1,1 @@
+"""skyloop's policy package (see DESIGN.md)."""

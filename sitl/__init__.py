@@ -1,0 +1,1 @@
+"""skyloop's sitl package (see DESIGN.md)."""

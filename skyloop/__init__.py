@@ -1,0 +1,17 @@
+"""skyloop: a software-in-the-loop drone stack.
+
+Importing this package registers the Gymnasium environment ``skyloop/UavNav-v0``
+(the in-process env of :mod:`policy.env`), so ``gymnasium.make("skyloop/UavNav-v0")``
+works after ``import skyloop``.
+"""
+
+from __future__ import annotations
+
+import gymnasium
+
+__version__ = "0.1.0"
+
+ENV_ID = "skyloop/UavNav-v0"
+
+if ENV_ID not in gymnasium.registry:
+    gymnasium.register(id=ENV_ID, entry_point="policy.env:UavNavEnv")
