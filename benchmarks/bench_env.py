@@ -1,0 +1,55 @@
+"""Env benchmark: full ``skyloop/UavNav-v0`` steps/s (truncated LiDAR) vs PyFlyt's QuadX.
+
+``env_steps_per_s`` is one control step end to end (JSBSim 50 physics steps, autopilot,
+estimator, collision check, VLP-16 scan truncated at 4.5 m, icosahedron, reward) under
+the scripted controller, median of several repeats. The peer runs in ``.venv-peers``
+(see ``peer_pyflyt.py``); when that venv is missing the peer is reported as skipped.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import time
+from pathlib import Path
+
+from policy.env import UavNavEnv
+from policy.scripted import StraightLineController
+
+PEER_PYTHON = Path(__file__).resolve().parent.parent / ".venv-peers" / "bin" / "python"
+
+
+def measure_env(steps: int, repeats: int, scenario: str = "valley") -> float:
+    env = UavNavEnv(scenario=scenario)
+    controller = StraightLineController()
+    state, _ = env.reset(seed=0)
+    rates = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            state, _, term, trunc, _ = env.step(controller(state))
+            if term or trunc:
+                state, _ = env.reset()
+        rates.append(steps / (time.perf_counter() - t0))
+    return statistics.median(rates)
+
+
+def measure_pyflyt(steps: int, repeats: int) -> dict:
+    if not PEER_PYTHON.exists():
+        return {"pyflyt_quadx_waypoints_steps_per_s": None,
+                "pyflyt_note": "skipped: .venv-peers missing (make bench creates it)"}
+    script = Path(__file__).with_name("peer_pyflyt.py")
+    out = subprocess.run([str(PEER_PYTHON), str(script), str(steps), str(repeats)],
+                         capture_output=True, text=True, timeout=600, check=False)
+    if out.returncode != 0:
+        return {"pyflyt_quadx_waypoints_steps_per_s": None,
+                "pyflyt_note": f"failed: {out.stderr.strip().splitlines()[-1:]}"}
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run(quick: bool) -> dict:
+    steps, repeats = (300, 3) if quick else (1500, 5)
+    result = {"env_steps_per_s": measure_env(steps, repeats)}
+    result["peers"] = measure_pyflyt(steps, repeats)
+    return result

@@ -1,0 +1,210 @@
+"""The in-process Gymnasium environment ``skyloop/UavNav-v0`` (abr-method.md, "Task").
+
+One control step (0.1 s) is the same pipeline the process graph runs, in one process:
+
+    action (body-horizontal vx, vy, vz, yaw_rate) -> world ENU velocity setpoint
+    -> JSBSim F450 + velocity autopilot for 50 physics steps (sitl.vehicle)
+    -> collision check of the true body sphere (sitl.world)
+    -> VLP-16 scan at the true pose (sitl.lidar)
+    -> 32 icosahedron faces + altitude, h, g from the estimate (perception)
+    -> 3-frame state (perception.FrameStacker), reward eq. 3.5 (policy.rewards)
+
+Episode ends (abr-method.md): goal reached (within ``goal_radius`` = 2 m of the goal
+and altitude not above ``goal_max_altitude`` = 6 m) or collision are terminal; 300 steps
+is a truncation (not terminal for the critic target).
+
+Actions: NaN or inf raise ``ValueError`` (a clear error rather than a silently held
+setpoint); finite values outside [-2, 2] are clipped. Actions are rounded to float32
+before use, as the MAVLink path carries float32, so the env and the stack agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium
+import numpy as np
+from gymnasium import spaces
+
+from perception.faces import face_values
+from perception.icosahedron import TruncatedIcosahedron
+from perception.observation import (
+    FrameStacker,
+    ObservationConfig,
+    build_observation,
+    goal_angles,
+)
+from policy.rewards import RewardConfig, base_reward
+from sitl.lidar import Lidar, LidarConfig
+from sitl.vehicle import Vehicle, VehicleConfig
+from sitl.world import UAV_BODY_RADIUS, World, load_scenario
+
+OBS_DIM = 35
+FRAMES = 3
+MAX_ACTION = 2.0
+
+
+@dataclass
+class EnvConfig:
+    """Task parameters; defaults are the paper's Table 4.1 and abr-method.md."""
+
+    scenario: str = "valley"
+    max_steps: int = 300
+    goal_radius: float = 2.0
+    goal_max_altitude: float = 6.0
+    lidar_max_range: float = 4.5  # the observation only needs points inside p_radius = 4 m
+    lidar_noise_sigma: float = 0.03
+    body_radius: float = UAV_BODY_RADIUS
+
+
+def body_to_world(action: np.ndarray, yaw: float) -> np.ndarray:
+    """Rotate a body-horizontal (forward, left, up, yaw_rate) action into world ENU."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    vx, vy, vz, yaw_rate = (float(a) for a in action)
+    return np.array([c * vx - s * vy, s * vx + c * vy, vz, yaw_rate])
+
+
+class UavNavEnv(gymnasium.Env):
+    """Navigate the F450 from a random start to a random goal using LiDAR observations."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        scenario: str = "valley",
+        seed: int | None = None,
+        lidar_max_range: float = 4.5,
+        render_mode: str | None = None,
+        config: EnvConfig | None = None,
+        reward_config: RewardConfig | None = None,
+        observation_config: ObservationConfig | None = None,
+    ) -> None:
+        self.config = config or EnvConfig(scenario=scenario, lidar_max_range=lidar_max_range)
+        self.reward_config = reward_config or RewardConfig()
+        self.obs_config = observation_config or ObservationConfig()
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', not {render_mode!r}")
+        self.render_mode = render_mode
+        self.world = World(load_scenario(self.config.scenario))
+        self.vehicle = Vehicle(VehicleConfig())
+        lidar_cfg = LidarConfig(
+            max_range=self.config.lidar_max_range, noise_sigma=self.config.lidar_noise_sigma
+        )
+        self.lidar = Lidar(self.world, lidar_cfg)
+        self.ico = TruncatedIcosahedron(self.obs_config.radius)
+        self.stacker = FrameStacker(FRAMES, OBS_DIM)
+        self.action_space = spaces.Box(-MAX_ACTION, MAX_ACTION, (4,), np.float32)
+        self.observation_space = spaces.Box(-np.inf, np.inf, (FRAMES, OBS_DIM), np.float32)
+        self._seed = seed
+        self._faces = np.zeros(32, np.float32)
+        self._points = np.zeros((0, 3), np.float32)
+        self.start = self.goal = np.zeros(3)
+        self.path: list[np.ndarray] = []
+        self.steps = 0
+
+    # -- Gymnasium API ---------------------------------------------------------------
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        if seed is None and self._seed is not None:
+            seed, self._seed = self._seed, None
+        super().reset(seed=seed)
+        rng = self.np_random
+        self.start, self.goal = self.world.sample_start_goal(rng)
+        if options and "goal" in options:
+            self.goal = np.asarray(options["goal"], dtype=float)
+        yaw = float(rng.uniform(-np.pi, np.pi))
+        sub_seed = int(rng.integers(2**31))
+        self.vehicle.reset(self.start, yaw, seed=sub_seed)
+        self.lidar.reseed(sub_seed + 1)
+        self.time = 0.0
+        self.steps = 0
+        self.stacker.reset()
+        self.path = [self.vehicle.truth.position.copy()]
+        self._distance = self._goal_distance()
+        obs = self._observe()
+        return self.stacker.push(obs), self._info(collided=False, reached=False, parts={})
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        action = np.asarray(action, dtype=np.float64).reshape(-1)
+        if action.shape != (4,):
+            raise ValueError(f"action must be (vx, vy, vz, yaw_rate), got shape {action.shape}")
+        if not np.all(np.isfinite(action)):
+            raise ValueError(f"action must be finite, got {action.tolist()}")
+        action = np.clip(action, -MAX_ACTION, MAX_ACTION).astype(np.float32)
+
+        yaw = self.vehicle.estimate.yaw
+        self.vehicle.step(body_to_world(action, yaw))
+        self.time += self.vehicle.config.control_period
+        self.steps += 1
+        truth = self.vehicle.truth
+        self.path.append(truth.position.copy())
+
+        collided = self.world.collides(truth.position, self.config.body_radius, self.time)
+        obs = self._observe()
+        d_prev, self._distance = self._distance, self._goal_distance()
+        if collided:
+            reward = self.reward_config.collision
+            parts = {"collision": reward}
+        else:
+            reward, parts = base_reward(
+                d_prev, self._distance, float(truth.position[2]), self._h, self._g,
+                self.reward_config,
+            )
+        reached = (
+            not collided
+            and self._distance <= self.config.goal_radius
+            and truth.position[2] <= self.config.goal_max_altitude
+        )
+        terminated = bool(collided or reached)
+        truncated = bool(not terminated and self.steps >= self.config.max_steps)
+        info = self._info(collided=collided, reached=reached, parts=parts)
+        return self.stacker.push(obs), float(reward), terminated, truncated, info
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array":
+            return None
+        from sitl.render import render_scene
+
+        truth = self.vehicle.truth
+        return render_scene(
+            self.world,
+            start=self.start,
+            goal=self.goal,
+            position=truth.position,
+            rotation=truth.rotation,
+            points=self._points,
+            face_values=self._faces,
+            face_normals=self.ico.normals,
+            paths=[np.array(self.path)],
+            title=f"{self.config.scenario} step {self.steps}",
+            size=(960, 480),
+        )
+
+    # -- internals -------------------------------------------------------------------
+
+    def _goal_distance(self) -> float:
+        return float(np.linalg.norm(self.vehicle.truth.position - self.goal))
+
+    def _observe(self) -> np.ndarray:
+        """One 35-attribute observation: faces from the scan, z/h/g from the estimate."""
+        truth, est = self.vehicle.truth, self.vehicle.estimate
+        self._points = self.lidar.scan(truth.position, truth.rotation, self.time)
+        self._faces = face_values(self._points, self.ico, self.obs_config.encoding)
+        self._h, self._g = goal_angles(est.position, est.yaw, est.velocity, self.goal)
+        return build_observation(
+            self._faces, float(est.position[2]), self._h, self._g, self.obs_config
+        )
+
+    def _info(self, *, collided: bool, reached: bool, parts: dict[str, float]) -> dict[str, Any]:
+        return {
+            "distance_to_goal": self._distance,
+            "collision": bool(collided),
+            "goal_reached": bool(reached),
+            "reward_components": dict(parts),
+            "position": self.vehicle.truth.position.copy(),
+            "goal": self.goal.copy(),
+            "steps": self.steps,
+        }
