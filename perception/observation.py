@@ -1,0 +1,163 @@
+"""The 35-attribute observation and the 3-frame state (paper section 3.2, abr-method.md "Task").
+
+Observation ``o = (f_1..f_32, z, h, g)``; the state is the last p_frames = 3 observations,
+stacked FIFO (oldest first), zero-padded at episode start (Algorithm 3.1:
+``s(0, 0, ..., o)``) and never spanning two episodes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from perception.faces import ENCODINGS
+from perception.icosahedron import N_FACES
+
+OBS_DIM = N_FACES + 3  # 35
+#: Horizontal speed (m/s) below which g is measured from the heading instead of the
+#: velocity (the velocity direction of a hovering UAV is estimator noise).
+MIN_SPEED = 0.1
+
+
+@dataclass
+class ObservationConfig:
+    """Scaling of the network inputs **[choice]** (abr-method.md): f / radius,
+    z / altitude_scale, h / angle_scale, g / angle_scale.
+
+    With the default scaling h and g land in [0, 2), not [-1, 1]: "goal straight ahead"
+    sits at the wrap-around (h = 359 deg -> 1.99, h = 1 deg -> 0.006), the most common
+    situation of a successful flight. ``centre_angles=True`` maps the angles to
+    [-180, 180) before scaling, so they land in [-1, 1) with the discontinuity moved
+    to "goal straight behind"; we think that is the better input, but the default keeps
+    the abr-method scaling.
+
+    ``encoding`` must match the one used for :func:`perception.faces.face_values`:
+    "distance" values (metres) are divided by ``radius``; "proximity" values are
+    already in [0, 1] and are used as they are.
+    """
+
+    radius: float = 4.0
+    altitude_scale: float = 10.0
+    angle_scale: float = 180.0
+    encoding: str = "distance"
+    centre_angles: bool = False
+
+    def __post_init__(self) -> None:
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
+        for name in ("radius", "altitude_scale", "angle_scale"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} must be positive and finite, got {value!r}")
+
+
+def _wrap_deg(angle_rad: float) -> float:
+    """Radians -> degrees in [0, 360) (guarding the float rounding of -tiny % 360)."""
+    deg = math.degrees(angle_rad) % 360.0
+    return 0.0 if deg >= 360.0 else deg
+
+
+def goal_angles(
+    position: np.ndarray,
+    yaw: float,
+    velocity: np.ndarray,
+    goal: np.ndarray,
+    min_speed: float = MIN_SPEED,
+) -> tuple[float, float]:
+    """The observation angles (h_deg, g_deg), each in [0, 360).
+
+    World frame ENU, ``yaw`` in radians (0 = facing east, counterclockwise positive).
+    Both angles are measured **counterclockwise** (seen from above) from the reference
+    direction to the horizontal direction of the goal ``goal - position``: a goal
+    straight ahead gives 0, to the left 90, behind 180, to the right 270.
+
+    - h: reference = the UAV's heading ``(cos yaw, sin yaw)``.
+    - g **[choice]**: reference = the UAV's horizontal velocity. When the horizontal
+      speed is below ``min_speed`` (default 0.1 m/s, e.g. hovering at episode start)
+      the velocity direction is noise, so the heading is used instead and g = h.
+    - When the goal is horizontally at the UAV's position (its direction undefined),
+      both angles are 0.
+    """
+    dx = float(goal[0]) - float(position[0])
+    dy = float(goal[1]) - float(position[1])
+    if dx == 0.0 and dy == 0.0:
+        return 0.0, 0.0
+    bearing = math.atan2(dy, dx)
+    h = _wrap_deg(bearing - float(yaw))
+    vx, vy = float(velocity[0]), float(velocity[1])
+    if math.hypot(vx, vy) < min_speed:
+        return h, h
+    return h, _wrap_deg(bearing - math.atan2(vy, vx))
+
+
+def build_observation(
+    face_values: np.ndarray,
+    altitude: float,
+    h_deg: float,
+    g_deg: float,
+    config: ObservationConfig | None = None,
+) -> np.ndarray:
+    """(35,) float32 observation ``(f_1..f_32, z, h, g)``, scaled per ``config``.
+
+    ``f / radius`` (distance encoding; proximity values unscaled), ``z / altitude_scale``,
+    ``h / angle_scale``, ``g / angle_scale`` (h, g in [0, 2) by default, [-1, 1) with
+    ``centre_angles``). Raises ValueError on a wrong shape or non-finite input: a NaN
+    must not reach the policy silently.
+    """
+    cfg = config if config is not None else ObservationConfig()
+    f = np.asarray(face_values, dtype=np.float64)
+    if f.shape != (N_FACES,):
+        raise ValueError(f"face_values must have shape ({N_FACES},), got {f.shape}")
+    h, g, z = float(h_deg), float(g_deg), float(altitude)
+    if not (np.isfinite(f).all() and math.isfinite(z) and math.isfinite(h)
+            and math.isfinite(g)):
+        raise ValueError("observation inputs must be finite")
+    if cfg.centre_angles:
+        h = (h + 180.0) % 360.0 - 180.0
+        g = (g + 180.0) % 360.0 - 180.0
+    out = np.empty(OBS_DIM, dtype=np.float32)
+    out[:N_FACES] = f / cfg.radius if cfg.encoding == "distance" else f
+    out[N_FACES] = z / cfg.altitude_scale
+    out[N_FACES + 1] = h / cfg.angle_scale
+    out[N_FACES + 2] = g / cfg.angle_scale
+    return out
+
+
+class FrameStacker:
+    """FIFO stack of the last ``frames`` observations: the state ``(o_1, ..., o_p)``.
+
+    Row 0 is the oldest, the last row the newest. After :meth:`reset` the stack is all
+    zeros, so the first push gives ``(0, 0, o)`` (Algorithm 3.1). Call :meth:`reset` at
+    every episode start: a stack never spans two episodes.
+    """
+
+    def __init__(self, frames: int = 3, dim: int = OBS_DIM) -> None:
+        if frames < 1 or dim < 1:
+            raise ValueError(f"frames and dim must be >= 1, got {frames}, {dim}")
+        self.frames = int(frames)
+        self.dim = int(dim)
+        self._buf = np.zeros((self.frames, self.dim), dtype=np.float32)
+        self.count = 0  # observations pushed since the last reset
+
+    def reset(self) -> None:
+        """Zero-fill: start of a new episode."""
+        self._buf.fill(0.0)
+        self.count = 0
+
+    def push(self, obs: np.ndarray) -> np.ndarray:
+        """Append ``obs`` (shape (dim,)) as the newest frame; return a (frames, dim)
+        float32 copy of the stack."""
+        o = np.asarray(obs, dtype=np.float32)
+        if o.shape != (self.dim,):
+            raise ValueError(f"obs must have shape ({self.dim},), got {o.shape}")
+        self._buf[:-1] = self._buf[1:]
+        self._buf[-1] = o
+        self.count += 1
+        return self._buf.copy()
+
+    @property
+    def state(self) -> np.ndarray:
+        """A copy of the current stack without pushing."""
+        return self._buf.copy()
