@@ -1,0 +1,143 @@
+"""The simulated vehicle: JSBSim F450 + velocity autopilot + sensors + estimator.
+
+`Vehicle.step(setpoint)` advances one control period (0.1 s = 50 physics steps at 500 Hz
+by default).  Inside it the outer loop runs `outer_hz` times a second (default 50 Hz, so
+5 ticks of 10 physics steps): sample the IMU, propagate the estimate, run the velocity
+autopilot on the ESTIMATE and hand its tilt/collective/yaw-rate command to the inner loops
+in JSBSim.  At the end of the period GPS, barometer and magnetometer are sampled and the
+Kalman filter corrects the estimate.  Ground truth (`truth`) is kept for evaluation and
+collision checks; the autopilot never sees it, except the roll/pitch attitude an ideal
+AHRS would give.
+
+Deterministic: the sensor noise is the only randomness and comes from the seed; JSBSim is
+re-initialised on every `reset`, so the same seed gives the same trajectory bit for bit.
+Frames and units as docs/interfaces.md: SI, world ENU, body FLU.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sitl.autopilot import AutopilotConfig, VelocityAutopilot
+from sitl.estimator import Estimator, EstimatorConfig
+from sitl.flight_model import FlightModel, enu_rpy, rotation_flu_to_enu
+from sitl.sensors import SensorConfig, Sensors
+
+
+@dataclass
+class VehicleConfig:
+    physics_hz: float = 500.0
+    control_period: float = 0.1
+    max_speed_xy: float = 2.0  # m/s per axis, setpoints saturated to these
+    max_speed_z: float = 2.0
+    max_yaw_rate: float = 2.0  # rad/s
+    outer_hz: float = 50.0  # autopilot + estimator propagation rate
+    autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)
+    sensors: SensorConfig = field(default_factory=SensorConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+
+
+@dataclass
+class VehicleState:
+    """Ground truth."""
+
+    position: np.ndarray  # (3,) ENU
+    velocity: np.ndarray  # (3,) ENU
+    rpy: np.ndarray  # (3,) roll, pitch (nose down +), yaw (ENU, 0 = east, CCW +)
+    rotation: np.ndarray  # (3,3) body(FLU) -> world(ENU)
+    time: float
+
+
+@dataclass
+class EstimatedState:
+    position: np.ndarray  # (3,) ENU
+    velocity: np.ndarray  # (3,) ENU
+    yaw: float
+
+
+class Vehicle:
+    """One simulated F450 flown by velocity setpoints (vx_east, vy_north, vz_up, yaw_rate)."""
+
+    def __init__(self, config: VehicleConfig | None = None, seed: int = 0) -> None:
+        self.config = c = config or VehicleConfig()
+        steps = c.physics_hz * c.control_period
+        outer = c.outer_hz * c.control_period
+        if abs(steps - round(steps)) > 1e-9 or abs(outer - round(outer)) > 1e-9:
+            raise ValueError("control_period must hold whole physics steps and outer ticks")
+        self._n_outer = round(outer)
+        self._n_inner, rem = divmod(round(steps), self._n_outer)
+        if rem:
+            raise ValueError("physics_hz must be a multiple of outer_hz")
+        self._dt_outer = self._n_inner / c.physics_hz
+        self.fm = FlightModel(c.physics_hz, hover_throttle=c.autopilot.hover_throttle)
+        self.autopilot = VelocityAutopilot(c.autopilot, c.max_speed_xy, c.max_speed_z,
+                                           c.max_yaw_rate)
+        self.sensors = Sensors(c.sensors, seed)
+        self.estimator = Estimator(c.control_period, config=c.estimator)
+        self.rejected_setpoints = 0
+        self.reset(np.array([0.0, 0.0, 3.5]), 0.0, seed)
+
+    def reset(self, position: np.ndarray, yaw: float, seed: int | None = None) -> None:
+        """Airborne, hovering (zero velocity) at `position` (ENU) facing `yaw`.
+
+        Re-seeds the sensor noise if `seed` is given (otherwise the noise stream goes on);
+        clears the autopilot, the estimator and `rejected_setpoints`.
+        """
+        e, n, u = (float(x) for x in position)
+        self.fm.reset(e, n, u, float(yaw))
+        g = self.fm.gravity
+        self.sensors.reset(seed)
+        self.autopilot.reset(gravity=g)
+        self.estimator.reset((e, n, u), float(yaw), gravity=g)
+        self.rejected_setpoints = 0
+        self._steps = 0
+        self._truth: VehicleState | None = None
+
+    def step(self, setpoint: np.ndarray) -> None:
+        """Fly one control period toward the ENU velocity/yaw-rate `setpoint`."""
+        sp = setpoint
+        if not self.autopilot.set_setpoint(sp[0], sp[1], sp[2], sp[3]):
+            self.rejected_setpoints += 1
+        fm, sens, est, ap = self.fm, self.sensors, self.estimator, self.autopilot
+        dt, n_inner = self._dt_outer, self._n_inner
+        specific_force, gyro, euler = fm.specific_force_flu, fm.gyro_flu, fm.euler_ned
+        set_commands, run = fm.set_commands, fm.run
+        for _ in range(self._n_outer):
+            f = sens.accel(*specific_force())
+            w = sens.gyro(*gyro())
+            phi, theta, _ = euler()
+            est.propagate(f, w, phi, -theta, dt)
+            set_commands(*ap.update(est.pos, est.vel, dt))
+            run(n_inner)
+        pos = fm.position()
+        vel = fm.velocity()
+        yaw = enu_rpy(*euler())[2]
+        est.correct(sens.gps(pos, vel), sens.baro(pos[2]), sens.mag_yaw(yaw))
+        self._steps += 1
+        self._truth = None
+
+    @property
+    def time(self) -> float:
+        """Simulated seconds since the last reset."""
+        return self._steps * self.config.control_period
+
+    @property
+    def truth(self) -> VehicleState:
+        if self._truth is None:
+            phi, theta, psi = self.fm.euler_ned()
+            self._truth = VehicleState(
+                position=np.array(self.fm.position()),
+                velocity=np.array(self.fm.velocity()),
+                rpy=np.array(enu_rpy(phi, theta, psi)),
+                rotation=np.array(rotation_flu_to_enu(phi, theta, psi)),
+                time=self.time,
+            )
+        return self._truth
+
+    @property
+    def estimate(self) -> EstimatedState:
+        est = self.estimator
+        return EstimatedState(position=np.array(est.pos), velocity=np.array(est.vel),
+                              yaw=est.yaw)
