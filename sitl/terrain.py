@@ -15,6 +15,7 @@ Features (heights combined by maximum, then a gentle undulation added):
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,13 +76,19 @@ class Heightfield:
 
     def tile_max(self, tile: int) -> np.ndarray:
         """Max vertex height per block of ``tile`` x ``tile`` cells: (ceil(ny/t), ceil(nx/t))."""
+        return self._tile_reduce(tile, np.max)
+
+    def tile_min(self, tile: int) -> np.ndarray:
+        """Min vertex height per block of ``tile`` x ``tile`` cells."""
+        return self._tile_reduce(tile, np.min)
+
+    def _tile_reduce(self, tile: int, fn: Callable[[np.ndarray], float]) -> np.ndarray:
         ty, tx = -(-self.ny // tile), -(-self.nx // tile)
-        out = np.full((ty, tx), -np.inf)
+        out = np.empty((ty, tx))
         h = self.heights
         for j in range(ty):
             for i in range(tx):
-                blk = h[j * tile : (j + 1) * tile + 1, i * tile : (i + 1) * tile + 1]
-                out[j, i] = blk.max()
+                out[j, i] = fn(h[j * tile : (j + 1) * tile + 1, i * tile : (i + 1) * tile + 1])
         return out
 
 

@@ -127,6 +127,15 @@ class World:
             raise ScenarioError(f"{self.scenario.source or self.scenario.name}: field "
                                 "'start_goal.clearance': no place for a start and a goal")
 
+    def add_solids(self, solids: list[ConvexSolid]) -> None:
+        """Add static obstacles (e.g. a test box); build LiDARs after adding them."""
+        self.solids = self.solids + list(solids)
+        self.packed = pack_solids(self.solids)
+        p = self.packed
+        self._static_args = self._static_args[:4] + (p.planes, p.start, p.aabb, p.box)
+        self._free_grid()
+        self._sampling_cells()
+
     # --- queries -----------------------------------------------------------------
 
     def terrain_height(self, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray | float:
