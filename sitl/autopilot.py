@@ -21,23 +21,29 @@ Cascade (outer loops here in Python, inner loops in JSBSim):
    (``sitl/fcs/f450_attitude_rate.xml``; see :mod:`sitl.flight_model`).
 
 Outer-loop rate (``VehicleConfig.outer_hz``; it must divide the 0.1 s control period
-into whole ticks, so 10, 20, 50 or 100 Hz), measured on this 2-core machine with
-Vehicle.step including sensors and the estimator (JSBSim alone with the skyloop FCS:
-~2,600 control steps/s; numbers vary +-10 % with machine load):
-    10 Hz: ~2,500 control steps/s, velocity estimate RMS 0.08 m/s
-    20 Hz: ~2,400 control steps/s, velocity estimate RMS 0.05 m/s, vz overshoot 12 %
-    50 Hz: ~1,850 control steps/s, velocity estimate RMS 0.03 m/s, vz overshoot 9 %
-   100 Hz: ~1,750 control steps/s, no better than 50 Hz
-The step responses hardly change with the rate (t90 0.7-0.9 s for 2 m/s, 1 m/s steps)
-because the attitude loop already runs at 500 Hz inside JSBSim; what the rate buys is the
-IMU sampling of the estimator.  Default: 50 Hz, 5 outer ticks per control period.
-Everything per tick is plain-float math.
+into whole ticks: 10, 20, 50 or 100 Hz).  Measured on this 2-core machine, rates
+interleaved round-robin, 9 x 1,000 random-setpoint control steps each, best / median
+(the other core was busy, so medians run ~20 % low); JSBSim alone with the skyloop FCS:
+3,117 / 2,501 control steps/s (156k / 125k physics steps/s):
+    10 Hz: 2,521 / 2,103 control steps/s; velocity-estimate RMS 0.08 m/s
+    20 Hz: 2,329 / 1,851;  velocity-estimate RMS 0.05 m/s, vz-step overshoot 12 %
+    50 Hz: 2,203 / 1,656;  velocity-estimate RMS 0.03 m/s, vz-step overshoot 9 %
+   100 Hz: 1,962 / 1,523;  no better than 50 Hz
+The step responses hardly depend on the rate (t90 0.7-0.9 s for 2 m/s and 1 m/s steps)
+because the attitude loop already runs at 500 Hz inside JSBSim; what the rate buys is
+the estimator's IMU sampling.  Default: 50 Hz (5 ticks per control period), whose
+Python share is ~0.14 ms per control step (the DESIGN.md budget is 0.3 ms).  Per tick
+everything is plain-float math (~6 us: property reads, IMU noise, estimator
+propagation, this loop); the Kalman predict/update (~34 us) runs once per period.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -83,14 +89,22 @@ class VelocityAutopilot:
         self._lock_z: float | None = None
 
     def set_setpoint(self, vx: float, vy: float, vz: float, yaw_rate: float) -> bool:
-        """Validate and saturate a setpoint; False (and counted) if any value is not finite."""
+        """Validate and saturate a setpoint; False (and counted) if any value is not finite.
+
+        A rejected setpoint leaves the last valid one in force.  Rejections are logged at
+        WARNING on the 1st, 2nd, 4th, 8th, ... occurrence, so a stream of bad input
+        cannot flood the log.
+        """
         try:
             vals = (float(vx), float(vy), float(vz), float(yaw_rate))
+            ok = all(map(math.isfinite, vals))
         except (TypeError, ValueError):
+            ok = False
+        if not ok:
             self.rejected += 1
-            return False
-        if not all(map(math.isfinite, vals)):
-            self.rejected += 1
+            if self.rejected & (self.rejected - 1) == 0:
+                log.warning("rejected non-finite velocity setpoint %r (%d rejected so far); "
+                            "holding %r", (vx, vy, vz, yaw_rate), self.rejected, self.setpoint)
             return False
         mxy, mz, mr = self.max_speed_xy, self.max_speed_z, self.max_yaw_rate
         self.setpoint = (min(max(vals[0], -mxy), mxy), min(max(vals[1], -mxy), mxy),

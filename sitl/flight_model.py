@@ -12,6 +12,11 @@ Implements the physics side of skyloop's vehicle (issue 2, section 2):
   FlightControl.xml puts on rate references (yaw rates up to 2 rad/s must be reachable).
   All of it runs inside JSBSim at every physics step (1/500 s), so Python only sets four
   properties at the outer-loop rate (``set_commands``).
+- Force balance, measured (and checked in tests/test_flight_model.py): the hover
+  collective is 0.4068 (specific force = g at sea level), not the 0.45-0.5 once noted;
+  with altitude held, a steady 10 deg tilt accelerates at ~0.97 g tan(10 deg) (20 deg:
+  ~0.95, body drag growing with speed), i.e. the rigid-body relation holds once the
+  attitude loop tracks the tilt exactly.
 - The F450's ``Sensor*.xml`` systems (JSBSim's own sensor models) are not loaded; skyloop
   models its sensors in :mod:`sitl.sensors`.  Without them, and with the aircraft file
   declared at the version this JSBSim expects, loading prints nothing (the stock F450
@@ -101,10 +106,10 @@ class FlightModel:
     """
 
     def __init__(self, physics_hz: float = 500.0, hover_throttle: float = 0.4068,
-                 spinup_steps: int = 250) -> None:
+                 spinup_time: float = 0.5) -> None:
         self.dt = 1.0 / physics_hz
         self.hover_throttle = hover_throttle
-        self.spinup_steps = spinup_steps
+        self.spinup_steps = max(1, round(spinup_time * physics_hz))
         self.fdm = load_f450(self.dt)
         self._run = self.fdm.run
         pm = self.fdm.get_property_manager()

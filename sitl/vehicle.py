@@ -97,8 +97,8 @@ class Vehicle:
 
     def step(self, setpoint: np.ndarray) -> None:
         """Fly one control period toward the ENU velocity/yaw-rate `setpoint`."""
-        sp = setpoint
-        if not self.autopilot.set_setpoint(sp[0], sp[1], sp[2], sp[3]):
+        vx, vy, vz, yaw_rate = setpoint  # ValueError unless exactly four values
+        if not self.autopilot.set_setpoint(vx, vy, vz, yaw_rate):
             self.rejected_setpoints += 1
         fm, sens, est, ap = self.fm, self.sensors, self.estimator, self.autopilot
         dt, n_inner = self._dt_outer, self._n_inner

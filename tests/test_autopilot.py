@@ -40,6 +40,16 @@ def test_non_finite_setpoints_rejected_last_valid_holds(bad: object) -> None:
     assert ap.setpoint == (1.0, 0.5, -0.5, 0.2)
 
 
+def test_rejections_logged_without_flooding(caplog: pytest.LogCaptureFixture) -> None:
+    ap = VelocityAutopilot()
+    with caplog.at_level("WARNING", logger="sitl.autopilot"):
+        for _ in range(100):
+            ap.set_setpoint(math.nan, 0.0, 0.0, 0.0)
+    assert ap.rejected == 100
+    assert 1 <= len(caplog.records) <= 8  # 1st, 2nd, 4th, ..., 64th
+    assert "rejected" in caplog.records[0].getMessage()
+
+
 def test_integrators_do_not_wind_up_while_saturated() -> None:
     ap = VelocityAutopilot()
     ap.set_setpoint(2.0, 0.0, 2.0, 0.0)
@@ -121,6 +131,8 @@ def test_vehicle_rejects_nan_and_keeps_flying_last_setpoint(vehicle: Vehicle) ->
     assert vehicle.truth.velocity[0] == pytest.approx(1.0, abs=0.15)
     vehicle.reset(START, 0.0)
     assert vehicle.rejected_setpoints == 0
+    with pytest.raises(ValueError):
+        vehicle.step(np.zeros(3))
 
 
 def test_world_velocity_tracked_while_yawing(vehicle: Vehicle) -> None:
