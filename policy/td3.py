@@ -1,0 +1,258 @@
+"""TD3 (Fujimoto et al. 2018) as used by the paper (section 2, Algorithm 3.1).
+
+Read top to bottom like CleanRL's ``td3_continuous_action.py``. One ``update`` is one
+gradient step of Algorithm 3.1's inner loop on a sampled mini-batch
+(s_i, a_i, r_i, s_{i+1}, d_i):
+
+Target policy smoothing (eq. 2.11)::
+
+    a'_i = clip(mu'(s_{i+1}) + clip(eps, -c, c), a_low, a_high),   eps ~ N(0, sigma)
+
+Clipped double-Q target (eq. 2.12), d_i = 1 only for terminal transitions::
+
+    y_i = r_i + gamma (1 - d_i) min_{j=1,2} Q'_j(s_{i+1}, a'_i)
+
+Critic loss (eq. 2.13), both critics regress on the same y::
+
+    L = sum_{j=1,2} 1/N sum_i (y_i - Q_j(s_i, a_i))^2
+
+Every ``policy_delay`` (2) critic updates: deterministic policy gradient on Q_1 and soft
+target updates::
+
+    L_actor = -1/N sum_i Q_1(s_i, mu(s_i))
+    theta' <- tau theta + (1 - tau) theta'       (actor and both critics, tau = 0.005)
+
+Speed: both critics are one fused module (``policy.networks.Critic``), the target update
+is one ``torch._foreach_lerp_`` per network, Adam runs ``fused``/``foreach`` and the
+actor's gradient does not flow into the critic weights. ``TD3Config.compile`` optionally
+wraps the loss computations in ``torch.compile``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from policy.networks import Actor, Critic
+from policy.replay import Batch
+
+__all__ = ["TD3Config", "TD3", "make_adam", "soft_update"]
+
+
+@dataclass
+class TD3Config:
+    """TD3 hyperparameters (paper Table 4.1; **[choice]** entries from the TD3 paper).
+
+    ``policy_noise`` (target smoothing sigma) and ``exploration_noise`` are absolute; left
+    as None they become 0.2 * max_action and 0.1 * max_action **[choice]**. ``noise_clip``
+    is the paper's target noise bound c = 0.5 (absolute).
+    """
+
+    state_dim: int = 105  # 3 frames x 35 attributes
+    action_dim: int = 4  # l_x, l_y, l_z, a_z
+    max_action: float = 2.0  # actions in [-2, 2]
+    hidden: tuple[int, ...] = (400, 300)  # [choice]
+    gamma: float = 0.99
+    tau: float = 0.005
+    lr: float = 1e-3  # [choice] Adam, actor and critics
+    policy_noise: float | None = None  # sigma of eq. 2.11 -> 0.2 * max_action
+    noise_clip: float = 0.5  # c of eq. 2.11
+    exploration_noise: float | None = None  # -> 0.1 * max_action
+    policy_delay: int = 2
+    batch_size: int = 100
+    start_steps: int = 10_000  # [choice] uniform random actions first
+    buffer_size: int = 1_000_000
+    seed: int = 0
+    compile: bool = False  # torch.compile the loss functions (optional, see benchmark)
+
+    def __post_init__(self) -> None:
+        self.hidden = tuple(int(h) for h in self.hidden)
+        if self.policy_noise is None:
+            self.policy_noise = 0.2 * self.max_action
+        if self.exploration_noise is None:
+            self.exploration_noise = 0.1 * self.max_action
+
+
+def make_adam(params: Any, lr: float) -> torch.optim.Adam:
+    """Adam with the fused CPU kernel when this torch has it, else the foreach one."""
+    params = list(params)
+    try:
+        return torch.optim.Adam(params, lr=lr, fused=True)
+    except (RuntimeError, TypeError, ValueError):
+        return torch.optim.Adam(params, lr=lr, foreach=True)
+
+
+@torch.no_grad()
+def soft_update(target: list[torch.Tensor], source: list[torch.Tensor], tau: float) -> None:
+    """theta' <- tau theta + (1 - tau) theta' for all parameters in one foreach call."""
+    torch._foreach_lerp_(target, source, tau)
+
+
+class TD3:
+    """Twin Delayed DDPG agent: actor, fused twin critics, their targets and optimizers."""
+
+    num_q = 2
+    config_class: type[TD3Config] = TD3Config
+
+    def __init__(self, config: TD3Config | None = None) -> None:
+        self.config = c = config or TD3Config()
+        with torch.random.fork_rng(devices=[]):  # seeded init, global RNG untouched
+            torch.manual_seed(c.seed)
+            self.actor = Actor(c.state_dim, c.action_dim, c.hidden, c.max_action)
+            self.critic = Critic(c.state_dim, c.action_dim, c.hidden, num_q=self.num_q)
+        # Algorithm 3.1: target networks start as copies, theta' = theta
+        self.actor_target = Actor(c.state_dim, c.action_dim, c.hidden, c.max_action)
+        self.critic_target = Critic(c.state_dim, c.action_dim, c.hidden, num_q=self.num_q)
+        self.actor_target.load_state_dict(self.actor.state_dict())
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        for p in (*self.actor_target.parameters(), *self.critic_target.parameters()):
+            p.requires_grad_(False)
+        self.actor_opt = make_adam(self.actor.parameters(), c.lr)
+        self.critic_opt = make_adam(self.critic.parameters(), c.lr)
+        self._pairs = [
+            (list(self.actor_target.parameters()), list(self.actor.parameters())),
+            (list(self.critic_target.parameters()), list(self.critic.parameters())),
+        ]
+        self.noise_gen = torch.Generator().manual_seed(c.seed + 1)  # target smoothing
+        self.rng = np.random.default_rng(c.seed + 2)  # exploration noise, random actions
+        self.updates = 0
+        self._critic_loss = self._critic_loss_eager
+        self._actor_loss = self._actor_loss_eager
+        if c.compile:
+            self._critic_loss = torch.compile(self._critic_loss_eager, dynamic=False)
+            self._actor_loss = torch.compile(self._actor_loss_eager, dynamic=False)
+
+    # ------------------------------------------------------------------ acting
+
+    @torch.no_grad()
+    def act(self, state: np.ndarray, noise: bool) -> np.ndarray:
+        """a = clip(mu(s) + eps, a_low, a_high), eps ~ N(0, exploration_noise) if ``noise``.
+
+        ``state`` is one (3, 35) / (105,) state or a batch of them; returns float32 actions
+        of shape (4,) or (N, 4).
+        """
+        c = self.config
+        x = torch.as_tensor(np.asarray(state, dtype=np.float32))
+        single = x.numel() == c.state_dim
+        a = self.actor(x.reshape(-1, c.state_dim)).numpy()
+        if noise:
+            a = a + self.rng.normal(0.0, c.exploration_noise, size=a.shape)
+            a = np.clip(a, -c.max_action, c.max_action)
+        a = a.astype(np.float32, copy=False)
+        return a[0] if single else a
+
+    def random_action(self) -> np.ndarray:
+        """Uniform action in [-max_action, max_action] (the first ``start_steps`` steps)."""
+        c = self.config
+        return self.rng.uniform(-c.max_action, c.max_action, c.action_dim).astype(np.float32)
+
+    # ------------------------------------------------------------------ learning
+
+    def target(self, next_state: torch.Tensor, reward: torch.Tensor,
+               done: torch.Tensor) -> torch.Tensor:
+        """y of eq. 2.12 with the smoothed target action of eq. 2.11 (no gradient)."""
+        c = self.config
+        with torch.no_grad():
+            mu_next = self.actor_target(next_state)
+            eps = torch.randn(mu_next.shape, generator=self.noise_gen) * c.policy_noise
+            eps = eps.clamp(-c.noise_clip, c.noise_clip)  # clip(eps, -c, c)
+            next_action = (mu_next + eps).clamp(-c.max_action, c.max_action)  # eq. 2.11
+            q_next = self.critic_target(next_state, next_action)  # (2, B, 1)
+            min_q = q_next.min(dim=0).values  # min_j Q'_j
+            return reward + c.gamma * (1.0 - done) * min_q  # eq. 2.12
+
+    def _critic_loss_eager(self, state: torch.Tensor, action: torch.Tensor,
+                           y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        q = self.critic(state, action)  # (2, B, 1): Q_1, Q_2 in one call
+        per_q = (q - y.unsqueeze(0)).pow(2).mean(dim=(1, 2))  # eq. 2.13, one MSE per critic
+        return per_q.sum(), q.detach()
+
+    def _actor_loss_eager(self, state: torch.Tensor) -> torch.Tensor:
+        # deterministic policy gradient through Q_1 only; critic weights get no gradient
+        return -self.critic.q1(state, self.actor(state), detach_params=True).mean()
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One gradient step of Algorithm 3.1 on ``batch``; returns the losses.
+
+        ``actor_loss`` is reported only on delayed (actor) steps.
+        """
+        c = self.config
+        self.updates += 1
+        y = self.target(batch.next_state, batch.reward, batch.done)
+
+        critic_loss, q = self._critic_loss(batch.state, batch.action, y)
+        self.critic_opt.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_opt.step()
+        out = {"critic_loss": critic_loss.item(), "q1": q[0].mean().item()}
+
+        if self.updates % c.policy_delay == 0:  # delayed policy and target updates
+            actor_loss = self._actor_loss(batch.state)
+            self.actor_opt.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            self.actor_opt.step()
+            for target, source in self._pairs:
+                soft_update(target, source, c.tau)
+            out["actor_loss"] = actor_loss.item()
+        return out
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def state_dict(self) -> dict[str, Any]:
+        """Networks, targets, optimizers, counters and RNG states (``weights_only`` safe)."""
+        cfg = asdict(self.config)
+        cfg["hidden"] = list(cfg["hidden"])
+        return {
+            "config": cfg,
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "actor_target": self.actor_target.state_dict(),
+            "critic_target": self.critic_target.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "updates": self.updates,
+            "noise_gen": self.noise_gen.get_state(),
+            "rng": _rng_state(self.rng),
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any]) -> TD3:
+        """Rebuild an agent (with its saved config) from ``state_dict()``."""
+        agent = cls(cls.config_class(**state["config"]))
+        agent.load_state_dict(state)
+        return agent
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for name in ("actor", "critic", "actor_target", "critic_target"):
+            module: nn.Module = getattr(self, name)
+            module.load_state_dict(state[name])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.updates = int(state["updates"])
+        self.noise_gen.set_state(state["noise_gen"])
+        self.rng.bit_generator.state = _rng_from(state["rng"])
+
+
+def _rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    """numpy PCG64 state as strings (big ints do not pass ``torch.load(weights_only)``)."""
+    s = rng.bit_generator.state
+    return {
+        "bit_generator": s["bit_generator"],
+        "state": str(s["state"]["state"]),
+        "inc": str(s["state"]["inc"]),
+        "has_uint32": int(s["has_uint32"]),
+        "uinteger": int(s["uinteger"]),
+    }
+
+
+def _rng_from(d: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "bit_generator": d["bit_generator"],
+        "state": {"state": int(d["state"]), "inc": int(d["inc"])},
+        "has_uint32": int(d["has_uint32"]),
+        "uinteger": int(d["uinteger"]),
+    }
