@@ -33,23 +33,14 @@ from sitl.flight_model import FlightModel
 from sitl.vehicle import Vehicle, VehicleConfig
 
 
-def _rate(fn, count: int, repeats: int) -> float:
-    rates = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        rates.append(count / (time.perf_counter() - t0))
-    return statistics.median(rates)
+def _timed(fn, count: int) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return count / (time.perf_counter() - t0)
 
 
-def measure_fdm(steps: int, repeats: int) -> float:
-    fm = FlightModel()
-    fm.reset(0.0, 0.0, 50.0, 0.0)
-    return _rate(lambda: fm.run(steps), steps, repeats)
-
-
-def measure_stock_f450(steps: int, repeats: int) -> float:
-    """JSBSim's own F450 as shipped; its load-time chatter goes to /dev/null."""
+def _stock_f450() -> jsbsim.FGFDMExec:
+    """JSBSim's own F450 as shipped, hovering; its load-time chatter goes to /dev/null."""
     sys.stdout.flush()
     sys.stderr.flush()
     saved = os.dup(1), os.dup(2)
@@ -71,41 +62,52 @@ def measure_stock_f450(steps: int, repeats: int) -> float:
     fdm["propulsion/set-running"] = -1
     fdm["fcs/ScasEngage"] = 1.0
     fdm["fcs/throttle-cmd-norm"] = 0.4068
-    run = fdm.run
+    return fdm
 
+
+def _physics(fdm_run, steps: int):
     def go() -> None:
         for _ in range(steps):
-            run()
+            fdm_run()
+    return go
 
-    return _rate(go, steps, repeats)
 
-
-def measure_vehicle(steps: int, repeats: int, outer_hz: float = 50.0) -> float:
-    v = Vehicle(VehicleConfig(outer_hz=outer_hz), seed=0)
-    rng = np.random.default_rng(0)
-    setpoints = rng.uniform(-2.0, 2.0, (steps, 4)) * [1.0, 1.0, 0.2, 1.0]
-    rep = iter(range(10**6))
+def _flight(v: Vehicle, setpoints: np.ndarray):
+    seeds = iter(range(10**6))
 
     def go() -> None:
-        v.reset(np.array([0.0, 0.0, 30.0]), 0.0, seed=next(rep))
+        v.reset(np.array([0.0, 0.0, 30.0]), 0.0, seed=next(seeds))
         for sp in setpoints:
             v.step(sp)
-
-    return _rate(go, steps, repeats)
+    return go
 
 
 def run(quick: bool) -> dict:
+    """All measurements interleaved round-robin, so machine load hits them alike."""
     fdm_steps, steps, repeats = (10_000, 300, 3) if quick else (50_000, 1_000, 7)
-    result: dict = {"fdm_steps_per_s": measure_fdm(fdm_steps, repeats)}
+    fm = FlightModel()
+    fm.reset(0.0, 0.0, 50.0, 0.0)
+    stock = _stock_f450()
+    setpoints = np.random.default_rng(0).uniform(-2.0, 2.0, (steps, 4)) * [1.0, 1.0, 0.2, 1.0]
+    outer_rates = (50.0,) if quick else (50.0, 10.0, 20.0, 100.0)
+    jobs = {"fdm_steps_per_s": (_physics(fm.fdm.run, fdm_steps), fdm_steps),
+            "jsbsim_stock_f450_steps_per_s": (_physics(stock.run, fdm_steps), fdm_steps)}
+    for hz in outer_rates:
+        key = ("flight_model_steps_per_s" if hz == 50.0
+               else f"flight_model_steps_per_s_outer_{hz:.0f}hz")
+        jobs[key] = (_flight(Vehicle(VehicleConfig(outer_hz=hz), seed=0), setpoints), steps)
+    rates: dict[str, list[float]] = {key: [] for key in jobs}
+    for _ in range(repeats):
+        for key, (fn, count) in jobs.items():
+            rates[key].append(_timed(fn, count))
+    med = {key: statistics.median(r) for key, r in rates.items()}
+    result: dict = {"fdm_steps_per_s": med.pop("fdm_steps_per_s")}
     result["fdm_control_steps_per_s"] = result["fdm_steps_per_s"] / 50.0
-    result["flight_model_steps_per_s"] = measure_vehicle(steps, repeats)
+    result["flight_model_steps_per_s"] = med.pop("flight_model_steps_per_s")
     result["controller_estimator_ms_per_step"] = 1e3 * (
         1.0 / result["flight_model_steps_per_s"] - 1.0 / result["fdm_control_steps_per_s"])
-    if not quick:
-        for hz in (10.0, 20.0, 100.0):
-            result[f"flight_model_steps_per_s_outer_{hz:.0f}hz"] = measure_vehicle(
-                steps, repeats, hz)
-    result["peers"] = {"jsbsim_stock_f450_steps_per_s": measure_stock_f450(fdm_steps, repeats)}
+    result["peers"] = {"jsbsim_stock_f450_steps_per_s": med.pop("jsbsim_stock_f450_steps_per_s")}
+    result.update(med)
     return result
 
 

@@ -202,6 +202,11 @@ class FlightModel:
         g = self._g
         return g["phi"](), g["theta"](), g["psi"]()
 
+    def rpy(self) -> tuple[float, float, float]:
+        """ENU/FLU roll, pitch (nose down +), yaw (CCW from east); see `enu_rpy`."""
+        g = self._g
+        return enu_rpy(g["phi"](), g["theta"](), g["psi"]())
+
     def gyro_flu(self) -> tuple[float, float, float]:
         """Inertial body rates in the FLU body frame, rad/s."""
         g = self._g

@@ -102,19 +102,17 @@ class Vehicle:
             self.rejected_setpoints += 1
         fm, sens, est, ap = self.fm, self.sensors, self.estimator, self.autopilot
         dt, n_inner = self._dt_outer, self._n_inner
-        specific_force, gyro, euler = fm.specific_force_flu, fm.gyro_flu, fm.euler_ned
+        specific_force, gyro, rpy = fm.specific_force_flu, fm.gyro_flu, fm.rpy
         set_commands, run = fm.set_commands, fm.run
         for _ in range(self._n_outer):
             f = sens.accel(*specific_force())
             w = sens.gyro(*gyro())
-            phi, theta, _ = euler()
-            est.propagate(f, w, phi, -theta, dt)
+            roll, pitch, _ = rpy()  # the AHRS attitude (ideal)
+            est.propagate(f, w, roll, pitch, dt)
             set_commands(*ap.update(est.pos, est.vel, dt))
             run(n_inner)
         pos = fm.position()
-        vel = fm.velocity()
-        yaw = enu_rpy(*euler())[2]
-        est.correct(sens.gps(pos, vel), sens.baro(pos[2]), sens.mag_yaw(yaw))
+        est.correct(sens.gps(pos, fm.velocity()), sens.baro(pos[2]), sens.mag_yaw(rpy()[2]))
         self._steps += 1
         self._truth = None
 
@@ -125,6 +123,7 @@ class Vehicle:
 
     @property
     def truth(self) -> VehicleState:
+        """Ground truth at the end of the last step (cached until the next step: read-only)."""
         if self._truth is None:
             phi, theta, psi = self.fm.euler_ned()
             self._truth = VehicleState(
@@ -138,6 +137,7 @@ class Vehicle:
 
     @property
     def estimate(self) -> EstimatedState:
+        """What the vehicle believes (the autopilot flies on this), as fresh arrays."""
         est = self.estimator
         return EstimatedState(position=np.array(est.pos), velocity=np.array(est.vel),
                               yaw=est.yaw)
