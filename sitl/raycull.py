@@ -66,6 +66,9 @@ def horizon_candidates(o, rot, grid, tmax, tmax_h, tmin_h, x0, y0, tsize, sphere
     j0 = max(int(math.floor((oy - tmax - y0) / tsize)), 0)
     j1 = min(int(math.floor((oy + tmax - y0) / tsize)), nty - 1)
     everything = False
+    # every ray's world elevation is >= the lowest channel's minus the sensor's tilt
+    el_low = el0 - math.acos(min(max(rot[2, 2], -1.0), 1.0))
+    tan_low = math.tan(el_low) if el_low > -0.5 * math.pi + 1e-6 else -INF
     for j in range(j0, j1 + 1):
         ya, yb = y0 + j * tsize, y0 + (j + 1) * tsize
         for i in range(i0, i1 + 1):
@@ -80,6 +83,9 @@ def horizon_candidates(o, rot, grid, tmax, tmax_h, tmin_h, x0, y0, tsize, sphere
             if dmin == 0.0:
                 everything = True
                 break
+            fx, fy = max(abs(xa - ox), abs(xb - ox)), max(abs(ya - oy), abs(yb - oy))
+            if zb - oz < math.sqrt(fx * fx + fy * fy) * tan_low:
+                continue  # the whole tile lies below the lowest ray
             qz_max, d_max, a_ref, lo, hi = -INF, 0.0, 0.0, 0.0, 0.0
             for k in range(8):
                 cx = (xa if k & 1 == 0 else xb) - ox

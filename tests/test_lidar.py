@@ -188,6 +188,29 @@ def test_auto_engine_and_truncated_scan_matches_full() -> None:
     assert ((short < 4.5) != (full < 4.5)).sum() <= 2
 
 
+@pytest.mark.parametrize("name", ["valley", "forest"])
+def test_truncated_culling_loses_no_hit(name: str) -> None:
+    """Short-range scans (culled) against full-range Embree scans (not culled)."""
+    w = world(name)
+    rng = np.random.default_rng(3)
+    short = Lidar(w, LidarConfig(max_range=4.5))
+    full = Lidar(w, LidarConfig(max_range=100.0, engine="embree"))
+    checked = 0
+    while checked < 25:
+        s, g = w.sample_start_goal(rng)
+        d = (g - s) / np.linalg.norm(g - s)
+        for k in range(0, int(np.linalg.norm(g - s)), 2):  # towards the goal, into hills
+            p = s + d * k + np.array([0.0, 0.0, rng.uniform(-2.0, 2.0)])
+            if w.collides_static(p, 0.3):
+                break
+            tilt = rng.uniform(-0.5, 0.5, size=2)
+            rot = yaw_pitch_roll(rng.uniform(-3, 3), *tilt)
+            a = short.ranges(p, rot, 0.0) < 4.5
+            b = full.ranges(p, rot, 0.0) < 4.5
+            assert (a != b).sum() <= 2, (p, (a != b).sum())
+            checked += 1
+
+
 def test_seeded_noise() -> None:
     w = world("valley")
     p, rot = w.sample_start_goal(np.random.default_rng(4))[0], yaw_pitch_roll(1.0)
