@@ -7,7 +7,7 @@ the actor and the targets), for both implementations. Blocks of ours and SB3's a
 interleaved and each is timed several times; the medians are reported, so load from
 other processes hits both alike.
 
-Run: ``python -m benchmarks.bench_td3 [--quick] [--compile] [--json out.json]``.
+Run: ``python -m benchmarks.bench_td3 [--quick] [--json out.json]``.
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ def _fill_ours(n: int, seed: int = 0) -> ReplayBuffer:
     return buf
 
 
-def _ours(compile: bool = False) -> Callable[[int], None]:
-    agent = TD3(TD3Config(compile=compile, batch_size=BATCH))
+def _ours() -> Callable[[int], None]:
+    agent = TD3(TD3Config(batch_size=BATCH))
     buf = _fill_ours(10_000)
 
     def steps(n: int) -> None:
@@ -100,7 +100,7 @@ def _time(fn: Callable[[int], None], n: int) -> tuple[float, float]:
     return n / (w1 - w0), n / max(c1 - c0, 1e-9)
 
 
-def run(quick: bool = False, compile: bool = False) -> dict[str, Any]:
+def run(quick: bool = False) -> dict[str, Any]:
     """Measure; returns ``td3_updates_per_s`` and, when SB3 is importable,
     ``sb3_td3_updates_per_s`` (also under ``peers``) and the ratio."""
     torch.set_num_threads(1)
@@ -109,11 +109,6 @@ def run(quick: bool = False, compile: bool = False) -> dict[str, Any]:
     sb3 = _sb3()
     if sb3 is not None:
         impls["sb3"] = sb3
-    if compile:
-        t0 = time.perf_counter()
-        impls["ours_compiled"] = _ours(compile=True)
-        impls["ours_compiled"](warmup)  # compiles here
-        compile_s = time.perf_counter() - t0
     for fn in impls.values():
         fn(warmup)
     wall: dict[str, list[float]] = {k: [] for k in impls}
@@ -144,19 +139,15 @@ def run(quick: bool = False, compile: bool = False) -> dict[str, Any]:
             "updates_per_s": med["sb3"],
             "updates_per_cpu_s": med_cpu["sb3"],
         }
-    if compile:
-        out["td3_compiled_updates_per_s"] = med["ours_compiled"]
-        out["compile_s"] = compile_s
     return out
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--compile", action="store_true", help="also time torch.compile'd losses")
     ap.add_argument("--json", default=None, help="write the results here")
     args = ap.parse_args(argv)
-    res = run(quick=args.quick, compile=args.compile)
+    res = run(quick=args.quick)
     rows = [(k, v) for k, v in res.items() if isinstance(v, int | float)]
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
