@@ -17,7 +17,7 @@ import numpy as np
 
 from sitl.aircraft import aircraft_pose
 
-_JIT = {"cache": True, "nogil": True, "fastmath": False}
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @nb.njit(**_JIT)

@@ -100,6 +100,7 @@ class Lidar:
         self._horizon = (t.tile_max(HORIZON_TILE), t.tile_min(HORIZON_TILE),
                          HORIZON_TILE * t.res)
         self._hz = np.empty(int(self.grid[0]))
+        self._colmin = np.zeros(int(self.grid[0]))  # march start per column
         self._top_all = max(tops)
         self._dist = np.empty(self.n_rays)
         self._zeros = np.zeros(self.n_rays)
@@ -138,16 +139,18 @@ class Lidar:
             # the numba engine splats solids itself: only the terrain decides its rays
             spheres = p.sphere if self.engine == "embree" else p.sphere[:0]
             n = raycull.horizon_candidates(o, rot, self.grid, tmax, hmax, hmin, x0, y0, hsize,
-                                           spheres, self._hz, self._idx)
+                                           spheres, self._hz, self._colmin, self._idx)
         else:
             n = raycull.candidates(o, rot, self.dirs, tmax, self._top_all, self._idx)
+            self._colmin.fill(0.0)
         if self.engine == "embree":
             self._cast_embree(o, rot, n, tmax)
         else:
             raycast.cast_solids(o, rot, self.dirs, self.grid, tmax, p.planes, p.start,
                                 p.sphere, dist)
-            raycast.cast_terrain(o, rot, self.dirs, self._idx, n, dist, h, cmax, x0, y0, res,
-                                 tilemax, tile, self._gmax_terrain)
+            raycast.cast_terrain(o, rot, self.dirs, self._idx, n, self._colmin,
+                                 int(self.grid[1]), dist, h, cmax, x0, y0, res, tilemax, tile,
+                                 self._gmax_terrain)
         if len(self.world.fleet):
             planes, start, spheres = box_planes(self.world.aircraft_boxes(t))
             raycast.cast_solids(o, rot, self.dirs, self.grid, tmax, planes, start, spheres,

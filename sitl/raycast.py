@@ -22,7 +22,7 @@ import math
 import numba as nb
 import numpy as np
 
-_JIT = {"cache": True, "nogil": True, "fastmath": False}
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 INF = np.inf
 SHORT_TILES = 4.0  # spans up to this many tiles skip the tile level (measured faster)
 
@@ -74,7 +74,7 @@ def _cell_hit(oz, dz, fx0, fy0, du, dv, c0, inv_dd, ta, tb, h, i, j) -> float:
     return _seg_hit(oz, dz, u0, v0, du, dv, ta, tb, h00, h10, h01, h11)
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _dda_init(o, d, t, x0, size, n):
     """Start cell, step, next boundary t and boundary spacing along one axis."""
     p = o + d * t
@@ -86,7 +86,7 @@ def _dda_init(o, d, t, x0, size, n):
     return i, 0, INF, INF
 
 
-@nb.njit(**_JIT)
+@nb.njit(inline="always", **_JIT)
 def _march_cells(ox, oy, oz, dx, dy, dz, ta, tb, h, cmax, x0, y0, res) -> float:
     """Cell-by-cell DDA over [ta, tb]; ``cmax`` (per-cell max height) rejects most cells."""
     nx, ny = cmax.shape[1], cmax.shape[0]
@@ -100,33 +100,34 @@ def _march_cells(ox, oy, oz, dx, dy, dz, ta, tb, h, cmax, x0, y0, res) -> float:
     while t < tb:
         if not (0 <= i < nx and 0 <= j < ny):
             return INF
-        te = min(min(tnx, tny), tb)
+        ux = tnx < tny
+        te = min(tnx if ux else tny, tb)
         ze = oz + dz * te
         if min(zt, ze) <= cmax[j, i]:
             hit = _cell_hit(oz, dz, fx0, fy0, du, dv, c0, inv_dd, t, te, h, i, j)
             if hit < INF:
                 return hit
         t, zt = te, ze
-        if tnx < tny:
-            i += si
-            tnx += dtx
-        else:
-            j += sj
-            tny += dty
+        # select, not branch: the x/y step order is unpredictable (measured ~20% faster)
+        i = i + si if ux else i
+        j = j if ux else j + sj
+        tnx = tnx + dtx if ux else tnx
+        tny = tny if ux else tny + dty
     return INF
 
 
-@nb.njit(**_JIT)
-def march_terrain(ox, oy, oz, dx, dy, dz, tmax, h, cmax, x0, y0, res, tilemax, tile,
+@nb.njit(inline="always", **_JIT)
+def march_terrain(ox, oy, oz, dx, dy, dz, tmin, tmax, h, cmax, x0, y0, res, tilemax, tile,
                   gmax) -> float:
-    """Distance along the ray to the terrain mesh, INF if none within tmax.
+    """Distance along the ray to the terrain mesh, INF if none within [tmin, tmax].
 
+    ``tmin`` must be a distance before which the ray is known to be clear.
     Rays are clipped to the grid and to the highest terrain point ``gmax``. Short
     spans (up to ``SHORT_TILES`` tiles) march cells directly; longer ones march tiles first and
     descend into the tiles whose maximum the ray goes below.
     """
     nx, ny = cmax.shape[1], cmax.shape[0]
-    ta, tb = 0.0, tmax
+    ta, tb = tmin, tmax
     if dx == 0.0:
         if ox < x0 or ox > x0 + nx * res:
             return INF
@@ -173,17 +174,20 @@ def march_terrain(ox, oy, oz, dx, dy, dz, tmax, h, cmax, x0, y0, res, tilemax, t
 
 
 @nb.njit(**_JIT)
-def cast_terrain(o, rot, dirs_s, idx, n, dist, h, cmax, x0, y0, res, tilemax, tile,
-                 gmax) -> None:
-    """March rays ``idx[:n]``; dist[i] = min(dist[i], terrain distance)."""
+def cast_terrain(o, rot, dirs_s, idx, n, tstart, nch, dist, h, cmax, x0, y0, res, tilemax,
+                 tile, gmax) -> None:
+    """March rays ``idx[:n]``; dist[i] = min(dist[i], terrain distance).
+
+    Ray i starts at ``tstart[i // nch]`` (clear before that, see ``raycull``).
+    """
     for k in range(n):
         i = idx[k]
         x, y, z = dirs_s[i, 0], dirs_s[i, 1], dirs_s[i, 2]
         dx = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2] * z
         dy = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2] * z
         dz = rot[2, 0] * x + rot[2, 1] * y + rot[2, 2] * z
-        t = march_terrain(o[0], o[1], o[2], dx, dy, dz, dist[i], h, cmax, x0, y0, res,
-                          tilemax, tile, gmax)
+        t = march_terrain(o[0], o[1], o[2], dx, dy, dz, max(tstart[i // nch], 0.0), dist[i],
+                          h, cmax, x0, y0, res, tilemax, tile, gmax)
         if t < dist[i]:
             dist[i] = t
 

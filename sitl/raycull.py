@@ -16,7 +16,7 @@ import math
 import numba as nb
 import numpy as np
 
-_JIT = {"cache": True, "nogil": True, "fastmath": False}
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 INF = np.inf
 
 
@@ -34,8 +34,9 @@ def candidates(o, rot, dirs_s, tmax, top, out_idx) -> int:
 
 
 @nb.njit(**_JIT)
-def _mark_columns(hz, az_lo, az_hi, el_hi, az0, daz) -> None:
-    """hz[col] = max(hz[col], el_hi) for the columns whose azimuth is in [az_lo, az_hi]."""
+def _mark_columns(hz, colmin, az_lo, az_hi, el_hi, dmin, az0, daz) -> None:
+    """For the columns whose azimuth is in [az_lo, az_hi]: raise the horizon to el_hi and
+    lower the nearest-geometry distance to dmin."""
     ncol = hz.shape[0]
     c_lo = int(math.floor((az_lo - az0) / daz))
     c_hi = int(math.ceil((az_hi - az0) / daz))
@@ -45,20 +46,25 @@ def _mark_columns(hz, az_lo, az_hi, el_hi, az0, daz) -> None:
         col = c % ncol
         if el_hi > hz[col]:
             hz[col] = el_hi
+        if dmin < colmin[col]:
+            colmin[col] = dmin
 
 
 @nb.njit(**_JIT)
 def horizon_candidates(o, rot, grid, tmax, tmax_h, tmin_h, x0, y0, tsize, sphere, hz,
-                       out_idx) -> int:
+                       colmin, out_idx) -> int:
     """Rays that may hit within tmax: those below the sensor-frame horizon of each column.
 
     The horizon of a column is the highest elevation (sensor frame) that any terrain
     tile (a box from its min to its max height) or solid bounding sphere within tmax
     reaches in that column's azimuth window. Conservative: a culled ray cannot hit.
+    ``colmin[col]`` receives the distance of the nearest such tile or sphere: no ray of
+    the column can hit anything closer, so marching may start there.
     """
     ncol, nch = int(grid[0]), int(grid[1])
     az0, daz, el0, dele = grid[2], grid[3], grid[4], grid[5]
     hz[:] = -INF
+    colmin[:] = INF
     ox, oy, oz = o[0], o[1], o[2]
     nty, ntx = tmax_h.shape
     i0 = max(int(math.floor((ox - tmax - x0) / tsize)), 0)
@@ -110,7 +116,8 @@ def horizon_candidates(o, rot, grid, tmax, tmax_h, tmin_h, x0, y0, tsize, sphere
                 continue
             if hi - lo >= math.pi - 1e-6:
                 lo, hi = -math.pi, math.pi
-            _mark_columns(hz, a_ref + lo - 1e-9, a_ref + hi + 1e-9, el_hi, az0, daz)
+            _mark_columns(hz, colmin, a_ref + lo - 1e-9, a_ref + hi + 1e-9, el_hi, dmin, az0,
+                          daz)
         if everything:
             break
     if not everything:
@@ -131,9 +138,11 @@ def horizon_candidates(o, rot, grid, tmax, tmax_h, tmin_h, x0, y0, tsize, sphere
             if abs(el) + rho < 0.5 * math.pi:
                 w = math.asin(min(math.sin(rho) / math.cos(el), 1.0))
                 az = math.atan2(qy, qx)
-                _mark_columns(hz, az - w, az + w, el + rho, az0, daz)
+                _mark_columns(hz, colmin, az - w, az + w, el + rho, dc - rb, az0, daz)
             else:
-                _mark_columns(hz, -math.pi, math.pi, el + rho, az0, daz)
+                _mark_columns(hz, colmin, -math.pi, math.pi, el + rho, dc - rb, az0, daz)
+    if everything:
+        colmin[:] = 0.0
     n = 0
     for col in range(ncol):
         if everything:
