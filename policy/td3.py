@@ -33,6 +33,7 @@ whole critic step): at best +6 % for 10-60 s of compilation, so it is not used.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,7 +43,9 @@ from torch import nn
 from policy.networks import Actor, Critic
 from policy.replay import Batch
 
-__all__ = ["TD3Config", "TD3", "make_adam", "soft_update"]
+__all__ = ["TD3Config", "TD3", "load_actor", "make_adam", "soft_update"]
+
+ACTOR_FORMAT = "skyloop-actor-1"
 
 
 @dataclass
@@ -125,18 +128,21 @@ class TD3:
     # ------------------------------------------------------------------ acting
 
     @torch.no_grad()
-    def act(self, state: np.ndarray, noise: bool) -> np.ndarray:
+    def act(
+        self, state: np.ndarray, noise: bool, rng: np.random.Generator | None = None
+    ) -> np.ndarray:
         """a = clip(mu(s) + eps, a_low, a_high), eps ~ N(0, exploration_noise) if ``noise``.
 
         ``state`` is one (3, 35) / (105,) state or a batch of them; returns float32 actions
-        of shape (4,) or (N, 4).
+        of shape (4,) or (N, 4). ``rng`` draws the noise instead of the agent's own
+        generator (``self.rng``, saved in ``state_dict``).
         """
         c = self.config
         x = torch.as_tensor(np.asarray(state, dtype=np.float32))
         single = x.numel() == c.state_dim
         a = self.actor(x.reshape(-1, c.state_dim)).numpy()
         if noise:
-            a = a + self.rng.normal(0.0, c.exploration_noise, size=a.shape)
+            a = a + (rng or self.rng).normal(0.0, c.exploration_noise, size=a.shape)
             a = np.clip(a, -c.max_action, c.max_action)
         a = a.astype(np.float32, copy=False)
         return a[0] if single else a
@@ -198,6 +204,19 @@ class TD3:
 
     # ------------------------------------------------------------------ checkpoints
 
+    def save_actor(self, path: str | Path) -> None:
+        """Write the actor alone (what a deployed policy needs); read with ``load_actor``."""
+        c = self.config
+        torch.save(
+            {
+                "format": ACTOR_FORMAT,
+                "config": {"state_dim": c.state_dim, "action_dim": c.action_dim,
+                           "hidden": list(c.hidden), "max_action": c.max_action},
+                "actor": self.actor.state_dict(),
+            },
+            path,
+        )
+
     def state_dict(self) -> dict[str, Any]:
         """Networks, targets, optimizers, counters and RNG states (``weights_only`` safe)."""
         cfg = asdict(self.config)
@@ -231,6 +250,18 @@ class TD3:
         self.updates = int(state["updates"])
         self.noise_gen.set_state(state["noise_gen"])
         self.rng.bit_generator.state = _rng_from(state["rng"])
+
+
+def load_actor(path: str | Path) -> Actor:
+    """Read an actor written by ``TD3.save_actor`` (eval mode, no gradients)."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(state, dict) or state.get("format") != ACTOR_FORMAT:
+        raise ValueError(f"{path}: not a skyloop actor file")
+    c = state["config"]
+    actor = Actor(c["state_dim"], c["action_dim"], tuple(c["hidden"]), c["max_action"])
+    actor.load_state_dict(state["actor"])
+    actor.eval().requires_grad_(False)
+    return actor
 
 
 def _rng_state(rng: np.random.Generator) -> dict[str, Any]:

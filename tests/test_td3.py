@@ -12,7 +12,7 @@ import torch
 from policy.ddpg import DDPG, DDPGConfig
 from policy.networks import Actor, Critic
 from policy.replay import Batch, ReplayBuffer
-from policy.td3 import TD3, TD3Config
+from policy.td3 import TD3, TD3Config, load_actor
 
 torch.set_num_threads(1)
 
@@ -194,3 +194,15 @@ def test_state_dict_roundtrip(cls, cfg_cls):
         assert restored.update(b) == agent.update(b)
     np.testing.assert_array_equal(restored.act(s, noise=False), agent.act(s, noise=False))
     assert restored.updates == agent.updates == 7
+
+
+def test_save_and_load_actor(tmp_path):
+    agent = TD3(TD3Config(**TINY, seed=2))
+    agent.update(_batch())
+    agent.update(_batch())
+    agent.save_actor(tmp_path / "actor.pt")
+    actor = load_actor(tmp_path / "actor.pt")
+    s = np.random.default_rng(0).normal(size=(4, 3)).astype(np.float32)
+    np.testing.assert_array_equal(actor(torch.from_numpy(s)).numpy(), agent.act(s, noise=False))
+    rng_a, rng_b = np.random.default_rng(5), np.random.default_rng(5)
+    np.testing.assert_array_equal(agent.act(s, True, rng=rng_a), agent.act(s, True, rng=rng_b))
