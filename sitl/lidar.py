@@ -99,7 +99,7 @@ class Lidar:
         self.n_rays: int = len(self.dirs)
         t = world.terrain
         h = t.heights
-        cmax = np.maximum(np.maximum(h[:-1, :-1], h[:-1, 1:]), np.maximum(h[1:, :-1], h[1:, 1:]))
+        cmax = t.cell_max()
         self._terrain = (h, np.ascontiguousarray(cmax), t.x0, t.y0, t.res, t.tile_max(TILE), TILE)
         p = world.packed
         tops = [float(t.heights.max())] + ([float(p.aabb[:, 5].max())] if len(p.aabb) else [])

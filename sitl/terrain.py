@@ -76,20 +76,26 @@ class Heightfield:
 
     def tile_max(self, tile: int) -> np.ndarray:
         """Max vertex height per block of ``tile`` x ``tile`` cells: (ceil(ny/t), ceil(nx/t))."""
-        return self._tile_reduce(tile, np.max)
+        return self._tile_reduce(tile, np.maximum)
 
     def tile_min(self, tile: int) -> np.ndarray:
         """Min vertex height per block of ``tile`` x ``tile`` cells."""
-        return self._tile_reduce(tile, np.min)
+        return self._tile_reduce(tile, np.minimum)
 
-    def _tile_reduce(self, tile: int, fn: Callable[[np.ndarray], float]) -> np.ndarray:
-        ty, tx = -(-self.ny // tile), -(-self.nx // tile)
-        out = np.empty((ty, tx))
+    def cell_max(self) -> np.ndarray:
+        """Max of the four vertex heights of every cell: (ny, nx)."""
         h = self.heights
-        for j in range(ty):
-            for i in range(tx):
-                out[j, i] = fn(h[j * tile : (j + 1) * tile + 1, i * tile : (i + 1) * tile + 1])
-        return out
+        return np.maximum(np.maximum(h[:-1, :-1], h[:-1, 1:]), np.maximum(h[1:, :-1], h[1:, 1:]))
+
+    def _tile_reduce(self, tile: int, fn: Callable[..., np.ndarray]) -> np.ndarray:
+        h = self.heights
+        cells = fn(fn(h[:-1, :-1], h[:-1, 1:]), fn(h[1:, :-1], h[1:, 1:]))  # per cell
+        ty, tx = -(-self.ny // tile), -(-self.nx // tile)
+        pad = -np.inf if fn is np.maximum else np.inf
+        full = np.full((ty * tile, tx * tile), pad)
+        full[: self.ny, : self.nx] = cells
+        blocks = full.reshape(ty, tile, tx, tile)
+        return (blocks.max(axis=(1, 3)) if fn is np.maximum else blocks.min(axis=(1, 3)))
 
 
 def generate_terrain(
