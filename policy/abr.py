@@ -108,15 +108,26 @@ class FeatureCNN(nn.Module):
         return torch.relu(self.fc(x.flatten(1)))
 
 
-def cosine_similarity(tau: np.ndarray, patterns: np.ndarray) -> np.ndarray:
-    """1 - cod(tau, H_j) of eq. 3.3 for every row of ``patterns`` (zero-vector rule above)."""
-    tau = np.asarray(tau, np.float64)
-    patterns = np.asarray(patterns, np.float64).reshape(-1, tau.shape[0])
-    nt = float(np.linalg.norm(tau))
-    nh = np.linalg.norm(patterns, axis=1)
+def cosine_similarity(
+    tau: np.ndarray,
+    patterns: np.ndarray,
+    norms: np.ndarray | None = None,
+    tau_norm: float | None = None,
+) -> np.ndarray:
+    """1 - cod(tau, H_j) of eq. 3.3 for every row of ``patterns`` (zero-vector rule above).
+
+    ``norms`` / ``tau_norm`` are the rows' and tau's Euclidean norms when already known.
+    """
+    tau = np.asarray(tau)
+    patterns = np.asarray(patterns).reshape(-1, tau.shape[0])
+    nt = float(np.linalg.norm(tau)) if tau_norm is None else float(tau_norm)
+    nh = np.linalg.norm(patterns, axis=1) if norms is None else np.asarray(norms)
     out = np.zeros(patterns.shape[0])
     both = (nh > 0) & (nt > 0)
-    out[both] = (patterns[both] @ tau) / (nh[both] * nt)
+    if both.all():
+        out[:] = (patterns @ tau) / (nh * nt)
+    elif both.any():
+        out[both] = (patterns[both] @ tau) / (nh[both] * nt)
     if nt == 0:
         out[nh == 0] = 1.0
     return out
@@ -131,9 +142,23 @@ class AugmentativeBackwardReward(GoalReward):
     def __init__(self, config: ABRConfig | None = None) -> None:
         self.config = config or ABRConfig()
         self.cnn = FeatureCNN(self.config)
-        self.patterns = np.zeros((0, self.config.p_features), np.float32)  # H
         self.returns: list[list[int]] = []  # per pattern: sorted distinct R_k
         self.last_groups: list[ABRGroup] = []  # groups of the last goal episode
+        self._set_patterns(np.zeros((0, self.config.p_features), np.float32))
+
+    @property
+    def patterns(self) -> np.ndarray:
+        """H: the stored patterns, one row each (a view; grows by doubling, so appending
+        stays amortised O(1) however long the run)."""
+        return self._h[: self._n]
+
+    def _set_patterns(self, patterns: np.ndarray) -> None:
+        n = patterns.shape[0]
+        self._h = np.zeros((max(64, 2 * n), self.config.p_features), np.float32)
+        self._h[:n] = patterns
+        self._norms = np.zeros(self._h.shape[0], np.float32)  # |H_j|, cached
+        self._norms[:n] = np.linalg.norm(self._h[:n], axis=1)
+        self._n = n
 
     # ------------------------------------------------------------------ pieces
 
@@ -147,17 +172,25 @@ class AugmentativeBackwardReward(GoalReward):
 
     def match(self, tau: np.ndarray) -> tuple[int, bool, float]:
         """Eqs. 3.3-3.4: (pattern index j, whether it is new, zeta). Appends to H if new."""
-        if len(self.patterns):
-            sims = cosine_similarity(tau, self.patterns)
+        tau = np.asarray(tau, np.float32).reshape(-1)
+        nt = np.float32(np.linalg.norm(tau))
+        n = self._n
+        if n:
+            sims = cosine_similarity(tau, self._h[:n], norms=self._norms[:n], tau_norm=nt)
             j = int(np.argmax(sims))
             zeta = float(sims[j])
             if zeta >= self.config.p_similarity:
                 return j, False, zeta
         else:
             zeta = math.nan
-        self.patterns = np.concatenate([self.patterns, np.asarray(tau, np.float32)[None]])
+        if n == self._h.shape[0]:
+            self._h = np.concatenate([self._h, np.zeros_like(self._h)])
+            self._norms = np.concatenate([self._norms, np.zeros_like(self._norms)])
+        self._h[n] = tau
+        self._norms[n] = nt
+        self._n += 1
         self.returns.append([])
-        return len(self.patterns) - 1, True, zeta
+        return self._n - 1, True, zeta
 
     def rank(self, j: int, ret: int) -> int:
         """Insert R into pattern j's sorted set of distinct returns; m = its 0-based index."""
@@ -211,7 +244,7 @@ class AugmentativeBackwardReward(GoalReward):
         self.config = ABRConfig(**state["config"])
         self.cnn = FeatureCNN(self.config)
         self.cnn.load_state_dict(state["cnn"])
-        self.patterns = state["patterns"].numpy().astype(np.float32).copy()
+        self._set_patterns(state["patterns"].numpy().astype(np.float32))
         self.returns = [[int(r) for r in s] for s in state["returns"]]
         if len(self.returns) != len(self.patterns):
             raise ValueError("ABR state_dict: patterns and return sets differ in number")
