@@ -35,7 +35,7 @@ from perception.observation import (
     build_observation,
     goal_angles,
 )
-from policy.rewards import RewardConfig, base_reward
+from policy.rewards import RewardConfig, base_reward, collision_reward
 from sitl.lidar import Lidar, LidarConfig
 from sitl.vehicle import Vehicle, VehicleConfig
 from sitl.world import UAV_BODY_RADIUS, World, load_scenario
@@ -95,7 +95,8 @@ class UavNavEnv(gymnasium.Env):
         self.ico = TruncatedIcosahedron(self.obs_config.radius)
         self.stacker = FrameStacker(FRAMES, OBS_DIM)
         self.action_space = spaces.Box(-MAX_ACTION, MAX_ACTION, (4,), np.float32)
-        self.observation_space = spaces.Box(-np.inf, np.inf, (FRAMES, OBS_DIM), np.float32)
+        # Scaled attributes: faces in [0, 2], altitude z/10 (|z| <= 100 m), h and g in [0, 2).
+        self.observation_space = spaces.Box(-10.0, 10.0, (FRAMES, OBS_DIM), np.float32)
         self._seed = seed
         self._faces = np.zeros(32, np.float32)
         self._points = np.zeros((0, 3), np.float32)
@@ -146,8 +147,7 @@ class UavNavEnv(gymnasium.Env):
         obs = self._observe()
         d_prev, self._distance = self._distance, self._goal_distance()
         if collided:
-            reward = self.reward_config.collision
-            parts = {"collision": reward}
+            reward, parts = collision_reward(self.reward_config)
         else:
             reward, parts = base_reward(
                 d_prev, self._distance, float(truth.position[2]), self._h, self._g,

@@ -7,7 +7,13 @@ works after ``import skyloop``.
 
 from __future__ import annotations
 
-import gymnasium
+import os
+
+# Small matrices on a 2-core machine: BLAS threads cost far more than they save
+# (measured up to 50x slower for the icosahedron matmuls). Users can still override.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import gymnasium  # noqa: E402
 
 __version__ = "0.1.0"
 

@@ -33,6 +33,26 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from policy.train import TrainConfig, Trainer
+
+    config = TrainConfig(algo=args.algo, reward=args.reward, scenario=args.scenario,
+                         episodes=args.episodes, seed=args.seed,
+                         checkpoint_every=args.checkpoint_every, start_steps=args.start_steps,
+                         threads=args.threads)
+    summary = Trainer(config, Path(args.out)).run(resume=args.resume)
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from policy.plots import plot_runs
+
+    out = plot_runs([Path(d) for d in args.runs], Path(args.out))
+    print(f"wrote {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="skyloop", description="Software-in-the-loop drone stack (see README.md)."
@@ -58,6 +78,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write the results as JSON here")
     p.add_argument("--only", nargs="*", help="run only these benchmark modules")
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("train", help="train TD3/DDPG with a goal reward in the in-process env")
+    p.add_argument("--algo", default="td3", help="td3 or ddpg")
+    p.add_argument("--reward", default="abr", help="tr, ngr, egr or abr")
+    p.add_argument("--scenario", default="valley")
+    p.add_argument("--episodes", type=int, default=5000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="run directory (CSV, TensorBoard, checkpoints)")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--checkpoint-every", type=int, default=100, metavar="EPISODES")
+    p.add_argument("--start-steps", type=int, default=10_000,
+                   help="initial uniformly random steps (abr-method.md: 10,000)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("plot", help="success/collision curves of one or more training runs")
+    p.add_argument("runs", nargs="+", help="run directories")
+    p.add_argument("--out", default="out/curves.png")
+    p.set_defaults(func=_cmd_plot)
     return parser
 
 
@@ -68,6 +107,6 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except (ValueError, FileNotFoundError) as exc:  # bad input: a clear message, no traceback
+    except (ValueError, FileNotFoundError, FileExistsError) as exc:  # bad input: no traceback
         print(f"skyloop {args.command}: error: {exc}", file=sys.stderr)
         return 2
