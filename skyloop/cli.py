@@ -45,6 +45,15 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from policy.evaluate import evaluate, format_summary
+
+    summary = evaluate(args.policy, args.scenario, args.episodes, args.seed,
+                       Path(args.json) if args.json else None)
+    print(format_summary(summary))
+    return 0
+
+
 def _cmd_plot(args: argparse.Namespace) -> int:
     from policy.plots import plot_runs
 
@@ -92,6 +101,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="initial uniformly random steps (abr-method.md: 10,000)")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.set_defaults(func=_cmd_train)
+
+    p = sub.add_parser("eval", help="evaluate a policy: success/collision/timeout rates, 95%% CI")
+    p.add_argument("--policy", help="actor file (actor.pt or checkpoint dir's actor.pt), "
+                   "'scripted' for the straight-line baseline; default: the shipped policy")
+    p.add_argument("--scenario", default="valley")
+    p.add_argument("--episodes", type=int, default=500)
+    p.add_argument("--seed", type=int, default=1_000_000_000, help="first episode seed")
+    p.add_argument("--json", help="write the summary as JSON here")
+    p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("plot", help="success/collision curves of one or more training runs")
     p.add_argument("runs", nargs="+", help="run directories")

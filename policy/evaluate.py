@@ -1,0 +1,81 @@
+"""Evaluation: a deterministic actor (no exploration noise) over seeded episodes.
+
+``skyloop eval [--policy CKPT|scripted] --scenario NAME --episodes N --seed S [--json PATH]``
+
+Episode ``i`` is reset with seed ``S + i``. Training episodes use seeds
+``train_seed * 1_000_003 + i`` (``policy.train``), so the default evaluation seed
+``EVAL_SEED`` = 1,000,000,000 gives episodes no small-seed training run has seen.
+Rates carry 95% Wilson intervals (``policy.rollout``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from policy.env import UavNavEnv
+from policy.rollout import run_episodes, summarize
+from policy.scripted import StraightLineController
+from policy.td3 import load_actor
+
+EVAL_SEED = 1_000_000_000
+SHIPPED_POLICY = Path(__file__).resolve().parent / "shipped" / "td3_abr_valley" / "actor.pt"
+
+
+class ActorController:
+    """The deterministic actor mu(s) of a trained agent as a controller."""
+
+    def __init__(self, path: str | Path) -> None:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such policy file")
+        try:
+            self.actor = load_actor(path)
+        except ValueError:
+            raise
+        except Exception as exc:  # torch raises many types for a corrupt file
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise ValueError(f"{path}: not a readable skyloop actor ({first})") from exc
+        self.name = f"actor {path}"
+
+    @torch.no_grad()
+    def __call__(self, state: np.ndarray) -> np.ndarray:
+        x = torch.as_tensor(np.asarray(state, np.float32).reshape(1, -1))
+        return self.actor(x)[0].numpy()
+
+
+def make_controller(policy: str | None):
+    """``None`` -> the shipped policy; ``"scripted"`` -> the straight-line baseline."""
+    if policy == "scripted":
+        return StraightLineController()
+    return ActorController(policy or SHIPPED_POLICY)
+
+
+def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_SEED,
+             json_path: Path | None = None, progress: bool = True) -> dict:
+    torch.set_num_threads(1)
+    controller = make_controller(policy)
+    env = UavNavEnv(scenario=scenario)
+    results = []
+    for r in tqdm(run_episodes(env, controller, episodes, seed), total=episodes,
+                  unit="ep", disable=not progress, desc=f"eval {scenario}"):
+        results.append(r)
+    env.close()
+    summary = summarize(results)
+    summary.update(policy=controller.name, scenario=scenario, seed=seed)
+    if json_path:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def format_summary(s: dict) -> str:
+    lo, hi = s["success_ci95"]
+    return (f"{s['policy']} on {s['scenario']}: {s['episodes']} episodes from seed {s['seed']}: "
+            f"success {s['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%}), "
+            f"collision {s['collision_rate']:.1%}, timeout {s['timeout_rate']:.1%}, "
+            f"mean steps {s['mean_steps']:.1f}, mean path {s['mean_path_length']:.1f} m")

@@ -1,0 +1,57 @@
+"""Evaluation: deterministic actor, JSON keys, the scripted baseline, bad policy files."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from policy.evaluate import SHIPPED_POLICY, ActorController, evaluate
+from policy.td3 import TD3, TD3Config
+
+
+@pytest.fixture(scope="module")
+def actor_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("actor") / "actor.pt"
+    TD3(TD3Config(seed=1)).save_actor(path)
+    return path
+
+
+def test_eval_writes_json_with_rates_and_intervals(actor_file, tmp_path):
+    out = tmp_path / "eval.json"
+    s = evaluate(str(actor_file), "valley", 3, seed=7, json_path=out, progress=False)
+    data = json.loads(out.read_text())
+    for key in ("success_rate", "collision_rate", "timeout_rate", "success_ci95",
+                "mean_steps", "mean_path_length"):
+        assert key in data
+    assert data["success_rate"] + data["collision_rate"] + data["timeout_rate"] == 1.0
+    lo, hi = data["success_ci95"]
+    assert 0.0 <= lo <= data["success_rate"] <= hi <= 1.0
+    # deterministic actor: the same seeds give the same summary
+    again = evaluate(str(actor_file), "valley", 3, seed=7, progress=False)
+    assert again["mean_steps"] == s["mean_steps"]
+    assert again["mean_path_length"] == s["mean_path_length"]
+
+
+def test_scripted_baseline_is_selectable():
+    s = evaluate("scripted", "valley", 2, seed=3, progress=False)
+    assert s["episodes"] == 2 and "straight-line" in s["policy"]
+
+
+def test_bad_policy_files_give_clear_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no such policy"):
+        ActorController(tmp_path / "missing.pt")
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"\x00garbage")
+    with pytest.raises(ValueError, match="not a readable skyloop actor"):
+        ActorController(bad)
+
+
+@pytest.mark.skipif(not SHIPPED_POLICY.exists(), reason="no shipped policy committed yet")
+def test_default_is_the_shipped_policy():
+    out = subprocess.run([sys.executable, "-m", "skyloop", "eval", "--episodes", "2"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert str(SHIPPED_POLICY) in out.stdout

@@ -1,0 +1,91 @@
+"""Training runs: seeded, checkpointed, resumable; bad input gives clear errors."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from policy.train import CHECKPOINT, TrainConfig, Trainer
+
+SMALL = dict(scenario="valley", seed=3, start_steps=60, buffer_size=5000, checkpoint_every=2)
+
+
+def _train(out: Path, episodes: int, resume: bool = False, **kw) -> str:
+    cfg = TrainConfig(episodes=episodes, **{**SMALL, **kw})
+    Trainer(cfg, out).run(resume=resume)
+    return (out / "episodes.csv").read_text()
+
+
+def test_same_seed_same_csv_and_resume_continues_exactly(tmp_path):
+    full = _train(tmp_path / "a", 5)
+    assert full == _train(tmp_path / "b", 5)  # same seed, same CSV
+    assert len(full.splitlines()) == 1 + 5
+    # Stop after 3 episodes (checkpoint at 2 and at the end), then pretend the process
+    # died after episode 2: roll the directory back to the episode-2 checkpoint state.
+    part = tmp_path / "c"
+    _train(part, 2)
+    ckpt_at_2 = (part / CHECKPOINT).read_bytes()
+    _train(part, 3, resume=True)
+    (part / CHECKPOINT).write_bytes(ckpt_at_2)  # the run "died" before checkpointing 3
+    resumed = _train(part, 5, resume=True)
+    assert resumed == full
+    assert (part / "curve.png").stat().st_size > 1000
+
+
+def test_killed_run_resumes_from_last_checkpoint(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "skyloop", "train", "--episodes", "40", "--seed", "5",
+           "--start-steps", "100000", "--checkpoint-every", "2", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not (out / CHECKPOINT).exists() and time.time() < deadline:
+        time.sleep(0.2)
+    time.sleep(0.5)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    state = torch.load(out / CHECKPOINT, weights_only=False)
+    done = state["episode"]
+    assert 2 <= done < 40
+    rc = subprocess.run([*cmd[:5], "6" if done < 6 else str(done + 2), *cmd[6:], "--resume"],
+                        capture_output=True, text=True, timeout=300)
+    assert rc.returncode == 0, rc.stderr[-2000:]
+    rows = (out / "episodes.csv").read_text().splitlines()
+    episodes = [int(r.split(",")[0]) for r in rows[1:]]
+    assert episodes == list(range(1, len(episodes) + 1))  # no gap, no duplicate
+
+
+def test_bad_input_is_a_clear_error_and_overwrites_nothing(tmp_path):
+    with pytest.raises(ValueError, match="unknown algorithm"):
+        TrainConfig(algo="ppo").validate()
+    with pytest.raises(ValueError, match="unknown reward"):
+        TrainConfig(reward="xyz").validate()
+    with pytest.raises(ValueError, match="unknown scenario"):
+        TrainConfig(scenario="moon").validate()
+
+    out = tmp_path / "run"
+    _train(out, 2)
+    before = (out / "episodes.csv").read_text()
+    with pytest.raises(FileExistsError, match="--resume"):
+        _train(out, 3)
+    with pytest.raises(ValueError, match="reward"):
+        _train(out, 3, resume=True, reward="tr")  # checkpoint of an ABR run
+    (out / CHECKPOINT).write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="not a readable"):
+        _train(out, 3, resume=True)
+    assert (out / "episodes.csv").read_text() == before
+    with pytest.raises(FileNotFoundError, match="nothing to resume"):
+        _train(tmp_path / "empty", 3, resume=True)
+
+
+def test_cli_reports_bad_arguments_without_traceback():
+    out = subprocess.run([sys.executable, "-m", "skyloop", "train", "--algo", "ppo",
+                          "--out", "unused"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2
+    assert "unknown algorithm 'ppo'" in out.stderr and "Traceback" not in out.stderr
