@@ -194,9 +194,9 @@ def _markers(ax: Axes, start: Vec, goal: Vec, pos: Vec, rot: np.ndarray, *,
                             (pos, dict(marker="^", color="blue", ms=8), "UAV")):
         if p is None:
             continue
-        p = np.asarray(p, float)
-        coords = (p[0], p[1], p[2]) if three_d else (p[0], p[1])
-        ax.plot(*[[c] for c in coords], linestyle="none", mec="k", label=label, **style)
+        p = np.asarray(p, float).reshape(-1, 3)  # one point, or one per episode
+        coords = (p[:, 0], p[:, 1], p[:, 2]) if three_d else (p[:, 0], p[:, 1])
+        ax.plot(*coords, linestyle="none", mec="k", label=label, **style)
     if pos is not None:
         fwd = rot[:, 0] * 2.0
         if three_d:

@@ -39,7 +39,8 @@ def run_demo(scenario: str, episodes: int, seed: int, out_dir: Path) -> dict:
           f"mean steps {summary['mean_steps']:.0f}, {summary['env_steps_per_s']:.0f} env steps/s")
     out_dir.mkdir(parents=True, exist_ok=True)
     png = out_dir / f"demo_{scenario}.png"
-    render_scene(env.world, start=results[0].start, goal=results[0].goal,
+    render_scene(env.world, start=np.array([r.start for r in results]),
+                 goal=np.array([r.goal for r in results]),
                  paths=[r.path for r in results], out=png,
                  title=f"{scenario}: {episodes} episodes, {controller.name}")
     print(f"paths of every episode: {png}")
