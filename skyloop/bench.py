@@ -41,7 +41,7 @@ def run_bench(quick: bool, json_path: Path | None, only: list[str] | None = None
     # One core: the goals are stated per core, and peers get the same.
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("NUMBA_NUM_THREADS", "1")
-    report: dict = {"machine": machine(), "command": " ".join(["skyloop", *sys.argv[2:]]),
+    report: dict = {"machine": machine(), "command": " ".join(["skyloop", *sys.argv[1:]]),
                     "quick": quick, "results": {}, "peers": {}}
     print(f"machine: {report['machine']['cpu']} ({report['machine']['cores']} cores), "
           f"python {report['machine']['python']}")
