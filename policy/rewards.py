@@ -181,6 +181,9 @@ class GoalReward:
         buffer.set_episode_rewards(episode, rewards)
         return rewards
 
+    def __init__(self, config: RewardConfig | None = None) -> None:
+        self.config = config or RewardConfig()
+
     def state_dict(self) -> dict[str, Any]:
         return {}
 
@@ -192,9 +195,6 @@ class TraditionalReward(GoalReward):
     """TR: the last (goal) transition gets ``goal_tr`` (+50); see ``RewardConfig.tr_replace``."""
 
     name = "tr"
-
-    def __init__(self, config: RewardConfig | None = None) -> None:
-        self.config = config or RewardConfig()
 
     def episode_rewards(
         self, base: np.ndarray, states: np.ndarray | None, reached_goal: bool
@@ -213,9 +213,6 @@ class NoGoalReward(GoalReward):
 
     name = "ngr"
 
-    def __init__(self, config: RewardConfig | None = None) -> None:
-        self.config = config or RewardConfig()
-
     def episode_rewards(
         self, base: np.ndarray, states: np.ndarray | None, reached_goal: bool
     ) -> np.ndarray:
@@ -226,9 +223,6 @@ class EqualGoalReward(GoalReward):
     """EGR: every transition of a goal episode gets ``egr_bonus`` (+1) on top of its base."""
 
     name = "egr"
-
-    def __init__(self, config: RewardConfig | None = None) -> None:
-        self.config = config or RewardConfig()
 
     def episode_rewards(
         self, base: np.ndarray, states: np.ndarray | None, reached_goal: bool
