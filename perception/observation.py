@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from perception.faces import ENCODINGS
-from perception.icosahedron import N_FACES
+from perception.faces import ENCODINGS, face_values
+from perception.icosahedron import N_FACES, TruncatedIcosahedron
 
 OBS_DIM = N_FACES + 3  # 35
 #: Horizontal speed (m/s) below which g is measured from the heading instead of the
@@ -161,3 +161,24 @@ class FrameStacker:
     def state(self) -> np.ndarray:
         """A copy of the current stack without pushing."""
         return self._buf.copy()
+
+
+def observation_from_scan(
+    points: np.ndarray,
+    ico: TruncatedIcosahedron,
+    position: np.ndarray,
+    yaw: float,
+    velocity: np.ndarray,
+    goal: np.ndarray,
+    config: ObservationConfig,
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """One 35-attribute observation from a scan and the estimated state.
+
+    The whole of perception for one step, shared by the in-process env and the
+    perception node: face values (eq. 3.1-3.2), the goal angles h and g, the altitude.
+    Returns ``(observation, face_values, h_deg, g_deg)``.
+    """
+    faces = face_values(points, ico, config.encoding)
+    h_deg, g_deg = goal_angles(position, yaw, velocity, goal)
+    obs = build_observation(faces, float(position[2]), h_deg, g_deg, config)
+    return obs, faces, h_deg, g_deg

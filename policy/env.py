@@ -20,25 +20,17 @@ before use, as the MAVLink path carries float32, so the env and the stack agree.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-from perception.faces import face_values
 from perception.icosahedron import TruncatedIcosahedron
-from perception.observation import (
-    FrameStacker,
-    ObservationConfig,
-    build_observation,
-    goal_angles,
-)
+from perception.observation import FrameStacker, ObservationConfig, observation_from_scan
 from policy.rewards import RewardConfig, base_reward, collision_reward
-from sitl.lidar import Lidar, LidarConfig
-from sitl.vehicle import Vehicle, VehicleConfig
-from sitl.world import UAV_BODY_RADIUS, World, load_scenario
+from sitl.episode import EpisodeConfig, EpisodeSim, body_to_world
 
 OBS_DIM = 35
 FRAMES = 3
@@ -49,20 +41,13 @@ MAX_ACTION = 2.0
 class EnvConfig:
     """Task parameters; defaults are the paper's Table 4.1 and abr-method.md."""
 
-    scenario: str = "valley"
     max_steps: int = 300
     goal_radius: float = 2.0
     goal_max_altitude: float = 6.0
-    lidar_max_range: float = 4.5  # the observation only needs points inside p_radius = 4 m
-    lidar_noise_sigma: float = 0.03
-    body_radius: float = UAV_BODY_RADIUS
+    episode: EpisodeConfig = field(default_factory=EpisodeConfig)  # scenario, LiDAR range
 
 
-def body_to_world(action: np.ndarray, yaw: float) -> np.ndarray:
-    """Rotate a body-horizontal (forward, left, up, yaw_rate) action into world ENU."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    vx, vy, vz, yaw_rate = (float(a) for a in action)
-    return np.array([c * vx - s * vy, s * vx + c * vy, vz, yaw_rate])
+__all__ = ["EnvConfig", "UavNavEnv", "body_to_world"]
 
 
 class UavNavEnv(gymnasium.Env):
@@ -80,18 +65,15 @@ class UavNavEnv(gymnasium.Env):
         reward_config: RewardConfig | None = None,
         observation_config: ObservationConfig | None = None,
     ) -> None:
-        self.config = config or EnvConfig(scenario=scenario, lidar_max_range=lidar_max_range)
+        self.config = config or EnvConfig(
+            episode=EpisodeConfig(scenario=scenario, lidar_max_range=lidar_max_range))
         self.reward_config = reward_config or RewardConfig()
         self.obs_config = observation_config or ObservationConfig()
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', not {render_mode!r}")
         self.render_mode = render_mode
-        self.world = World(load_scenario(self.config.scenario))
-        self.vehicle = Vehicle(VehicleConfig())
-        lidar_cfg = LidarConfig(
-            max_range=self.config.lidar_max_range, noise_sigma=self.config.lidar_noise_sigma
-        )
-        self.lidar = Lidar(self.world, lidar_cfg)
+        self.sim = EpisodeSim(self.config.episode)
+        self.world, self.vehicle, self.lidar = self.sim.world, self.sim.vehicle, self.sim.lidar
         self.ico = TruncatedIcosahedron(self.obs_config.radius)
         self.stacker = FrameStacker(FRAMES, OBS_DIM)
         self.action_space = spaces.Box(-MAX_ACTION, MAX_ACTION, (4,), np.float32)
@@ -100,7 +82,6 @@ class UavNavEnv(gymnasium.Env):
         self._seed = seed
         self._faces = np.zeros(32, np.float32)
         self._points = np.zeros((0, 3), np.float32)
-        self.start = self.goal = np.zeros(3)
         self.path: list[np.ndarray] = []
         self.steps = 0
 
@@ -112,15 +93,7 @@ class UavNavEnv(gymnasium.Env):
         if seed is None and self._seed is not None:
             seed, self._seed = self._seed, None
         super().reset(seed=seed)
-        rng = self.np_random
-        self.start, self.goal = self.world.sample_start_goal(rng)
-        if options and "goal" in options:
-            self.goal = np.asarray(options["goal"], dtype=float)
-        yaw = float(rng.uniform(-np.pi, np.pi))
-        sub_seed = int(rng.integers(2**31))
-        self.vehicle.reset(self.start, yaw, seed=sub_seed)
-        self.lidar.reseed(sub_seed + 1)
-        self.time = 0.0
+        self.sim.reset(self.np_random, goal=(options or {}).get("goal"))
         self.steps = 0
         self.stacker.reset()
         self.path = [self.vehicle.truth.position.copy()]
@@ -136,14 +109,10 @@ class UavNavEnv(gymnasium.Env):
             raise ValueError(f"action must be finite, got {action.tolist()}")
         action = np.clip(action, -MAX_ACTION, MAX_ACTION).astype(np.float32)
 
-        yaw = self.vehicle.estimate.yaw
-        self.vehicle.step(body_to_world(action, yaw))
-        self.time += self.vehicle.config.control_period
+        collided = self.sim.step_body(action)
         self.steps += 1
         truth = self.vehicle.truth
         self.path.append(truth.position.copy())
-
-        collided = self.world.collides(truth.position, self.config.body_radius, self.time)
         obs = self._observe()
         d_prev, self._distance = self._distance, self._goal_distance()
         if collided:
@@ -179,24 +148,31 @@ class UavNavEnv(gymnasium.Env):
             face_values=self._faces,
             face_normals=self.ico.normals,
             paths=[np.array(self.path)],
-            title=f"{self.config.scenario} step {self.steps}",
+            title=f"{self.config.episode.scenario} step {self.steps}",
             size=(960, 480),
         )
 
     # -- internals -------------------------------------------------------------------
 
     def _goal_distance(self) -> float:
-        return float(np.linalg.norm(self.vehicle.truth.position - self.goal))
+        return self.sim.goal_distance()
+
+    @property
+    def start(self) -> np.ndarray:
+        return self.sim.start
+
+    @property
+    def goal(self) -> np.ndarray:
+        return self.sim.goal
 
     def _observe(self) -> np.ndarray:
         """One 35-attribute observation: faces from the scan, z/h/g from the estimate."""
-        truth, est = self.vehicle.truth, self.vehicle.estimate
-        self._points = self.lidar.scan(truth.position, truth.rotation, self.time)
-        self._faces = face_values(self._points, self.ico, self.obs_config.encoding)
-        self._h, self._g = goal_angles(est.position, est.yaw, est.velocity, self.goal)
-        return build_observation(
-            self._faces, float(est.position[2]), self._h, self._g, self.obs_config
-        )
+        est = self.vehicle.estimate
+        self._points = self.sim.scan()
+        obs, self._faces, self._h, self._g = observation_from_scan(
+            self._points, self.ico, est.position, est.yaw, est.velocity, self.goal,
+            self.obs_config)
+        return obs
 
     def _info(self, *, collided: bool, reached: bool, parts: dict[str, float]) -> dict[str, Any]:
         return {

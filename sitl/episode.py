@@ -1,0 +1,90 @@
+"""The simulator side of one episode: world, vehicle, LiDAR and collision, seeded.
+
+This is the piece the in-process env (``policy.env``) and the simulator node share, so
+that an episode flown through the process graph in lockstep reproduces the same
+episode in the env: same seed -> same start, goal, initial yaw, sensor noise; same
+setpoints -> same trajectory.
+
+Reset draws, from ``numpy.random.default_rng(seed)`` (the same generator Gymnasium's
+``reset(seed=...)`` builds): start and goal (``World.sample_start_goal``), the initial
+yaw uniform in [-pi, pi), then one sub-seed for the vehicle's sensors (the LiDAR noise
+uses sub-seed + 1).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sitl.lidar import Lidar, LidarConfig
+from sitl.vehicle import Vehicle, VehicleConfig
+from sitl.world import UAV_BODY_RADIUS, World, load_scenario
+
+
+@dataclass
+class EpisodeConfig:
+    scenario: str = "valley"
+    lidar_max_range: float = 4.5  # the observation only needs points inside p_radius = 4 m
+    lidar_noise_sigma: float = 0.03
+    body_radius: float = UAV_BODY_RADIUS
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+
+
+def body_to_world(command: np.ndarray, yaw: float) -> np.ndarray:
+    """Rotate a body-horizontal (forward, left, up, yaw_rate) command into world ENU."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    vx, vy, vz, yaw_rate = (float(a) for a in command)
+    return np.array([c * vx - s * vy, s * vx + c * vy, vz, yaw_rate])
+
+
+class EpisodeSim:
+    """World + JSBSim vehicle + VLP-16 for seeded episodes, one control period a step."""
+
+    def __init__(self, config: EpisodeConfig | None = None) -> None:
+        self.config = c = config or EpisodeConfig()
+        self.world = World(load_scenario(c.scenario))
+        self.vehicle = Vehicle(c.vehicle)
+        self.lidar = Lidar(self.world, LidarConfig(max_range=c.lidar_max_range,
+                                                   noise_sigma=c.lidar_noise_sigma))
+        self.start = self.goal = np.zeros(3)
+        self.time = 0.0
+        self.steps = 0
+        self.collided = False
+
+    def reset(self, rng: np.random.Generator, goal: np.ndarray | None = None) -> None:
+        """Start a new episode with randomness drawn from ``rng`` (see module docstring)."""
+        self.start, self.goal = self.world.sample_start_goal(rng)
+        if goal is not None:
+            self.goal = np.asarray(goal, dtype=float)
+        yaw = float(rng.uniform(-np.pi, np.pi))
+        sub_seed = int(rng.integers(2**31))
+        self.vehicle.reset(self.start, yaw, seed=sub_seed)
+        self.lidar.reseed(sub_seed + 1)
+        self.time, self.steps, self.collided = 0.0, 0, False
+
+    def step_body(self, command: np.ndarray) -> bool:
+        """Fly one control period on a body-horizontal command; returns ``collided``.
+
+        The command is rotated into the world frame with the *estimated* yaw, as a flight
+        controller does with a body-frame setpoint.
+        """
+        return self.step_world(body_to_world(command, self.vehicle.estimate.yaw))
+
+    def step_world(self, setpoint: np.ndarray) -> bool:
+        """Fly one control period on a world ENU (vx, vy, vz, yaw_rate) setpoint."""
+        self.vehicle.step(setpoint)
+        self.time += self.vehicle.config.control_period
+        self.steps += 1
+        self.collided = self.world.collides(self.vehicle.truth.position,
+                                            self.config.body_radius, self.time)
+        return self.collided
+
+    def scan(self) -> np.ndarray:
+        """A VLP-16 scan at the true pose, now: float32 (N, 3) in the sensor frame."""
+        truth = self.vehicle.truth
+        return self.lidar.scan(truth.position, truth.rotation, self.time)
+
+    def goal_distance(self) -> float:
+        return float(np.linalg.norm(self.vehicle.truth.position - self.goal))
