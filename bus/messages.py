@@ -1,0 +1,315 @@
+"""Message types and the CDR codec: the rosbags ROS 2 Humble type store plus the project
+``.msg`` types in ``bus/msg/`` (package ``skyloop_msgs``).
+
+``encode(msg) -> bytes`` and ``decode(type_name, data)`` are the only serialisation
+path of the stack. The constructors below build the messages the stack sends and the
+extractors turn them back into numpy arrays, so no other package touches a message's
+field layout.
+
+Conventions: times are float seconds (sim time in lockstep) stored as
+``builtin_interfaces/Time``; frames are ENU (``frame_id='world'``). Odometry carries
+the velocity in the *world* frame (``frame_id``), not in ``child_frame_id`` as REP 105
+has it; the stack never reads it otherwise.
+
+Measured (this machine, other core busy): encode of a 28,800-point cloud about
+0.03 ms, decode plus :func:`points_from_pointcloud` about 0.02 ms (zero copy).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+MSG_DIR = Path(__file__).resolve().parent / "msg"
+PROJECT_PACKAGE = "skyloop_msgs"
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+OBSERVATION = f"{PROJECT_PACKAGE}/msg/Observation"
+EPISODE_EVENT = f"{PROJECT_PACKAGE}/msg/EpisodeEvent"
+STEP_CLOCK = f"{PROJECT_PACKAGE}/msg/StepClock"
+ACTOR_WEIGHTS = f"{PROJECT_PACKAGE}/msg/ActorWeights"
+PROJECT_TYPES = (OBSERVATION, EPISODE_EVENT, STEP_CLOCK, ACTOR_WEIGHTS)
+
+START, END = 0, 1
+OUTCOMES = {"none": 0, "success": 1, "collision": 2, "timeout": 3, "aborted": 4}
+OUTCOME_NAMES = {v: k for k, v in OUTCOMES.items()}
+
+_FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
+_FLOAT64 = 8
+_LITTLE = sys.byteorder == "little"
+
+
+def _build_typestore() -> Any:
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    types: dict[str, Any] = {}
+    for name in PROJECT_TYPES:
+        path = MSG_DIR / f"{name.rsplit('/', 1)[1]}.msg"
+        types.update(get_types_from_msg(path.read_text(), name))
+    store.register(types)
+    return store
+
+
+#: The type store (ROS 2 Humble + skyloop_msgs). Treat as read-only.
+TYPESTORE = _build_typestore()
+_T = TYPESTORE.types
+Time = _T["builtin_interfaces/msg/Time"]
+Header = _T["std_msgs/msg/Header"]
+Point = _T["geometry_msgs/msg/Point"]
+Vector3 = _T["geometry_msgs/msg/Vector3"]
+Quaternion = _T["geometry_msgs/msg/Quaternion"]
+Pose = _T["geometry_msgs/msg/Pose"]
+Twist = _T["geometry_msgs/msg/Twist"]
+PointField = _T["sensor_msgs/msg/PointField"]
+PointCloud2 = _T[POINTCLOUD2]
+Odometry = _T[ODOMETRY]
+TwistStamped = _T[TWIST_STAMPED]
+PoseStamped = _T[POSE_STAMPED]
+Observation = _T[OBSERVATION]
+EpisodeEvent = _T[EPISODE_EVENT]
+StepClock = _T[STEP_CLOCK]
+ActorWeights = _T[ACTOR_WEIGHTS]
+_ZERO_COV = np.zeros(36, dtype=np.float64)
+
+
+# ----------------------------------------------------------------------------- codec
+def encode(msg: Any) -> bytes:
+    """Serialise a message (any type of :data:`TYPESTORE`) to CDR bytes."""
+    return bytes(TYPESTORE.serialize_cdr(msg, msg.__msgtype__))
+
+
+def decode(type_name: str, data: bytes | bytearray | memoryview) -> Any:
+    """Deserialise CDR ``data`` as ``type_name``.
+
+    Raises on a payload that does not decode (truncated, wrong type, unknown type);
+    array fields are numpy views into ``data`` (read-only when ``data`` is ``bytes``).
+    """
+    if type_name not in _T:
+        raise KeyError(f"unknown message type {type_name!r}")
+    if len(data) < 4:
+        raise ValueError(f"{type_name}: {len(data)}-byte payload is shorter than a CDR header")
+    return TYPESTORE.deserialize_cdr(data, type_name)
+
+
+def msgdef(type_name: str) -> str:
+    """Full ROS 2 ``.msg`` definition of ``type_name`` with its dependencies appended
+    (``====`` / ``MSG: pkg/Type`` blocks): the MCAP ``ros2msg`` schema text."""
+    return TYPESTORE.generate_msgdef(type_name, ros_version=2)[0]
+
+
+# ----------------------------------------------------------------------------- times
+def time_msg(t_s: float) -> Any:
+    """Float seconds -> ``builtin_interfaces/Time`` (nanosecond rounding)."""
+    ns = round(float(t_s) * 1e9)
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def seconds(t: Any) -> float:
+    """``builtin_interfaces/Time`` -> float seconds."""
+    return t.sec + t.nanosec * 1e-9
+
+
+def nanoseconds(t: Any) -> int:
+    """``builtin_interfaces/Time`` -> integer nanoseconds."""
+    return t.sec * 1_000_000_000 + t.nanosec
+
+
+def header(stamp_s: float, frame_id: str = "") -> Any:
+    """``std_msgs/Header`` with the stamp in float seconds."""
+    return Header(stamp=time_msg(stamp_s), frame_id=frame_id)
+
+
+def _vec3(v: Sequence[float], kind: Any) -> Any:
+    x, y, z = (float(c) for c in v)
+    return kind(x=x, y=y, z=z)
+
+
+def _quat(q: Sequence[float]) -> Any:
+    x, y, z, w = (float(c) for c in q)
+    return Quaternion(x=x, y=y, z=z, w=w)
+
+
+# ----------------------------------------------------------------------------- clouds
+def pointcloud(points: np.ndarray, stamp_s: float, frame_id: str = "lidar") -> Any:
+    """(N, 3) points -> ``PointCloud2`` with x, y, z float32 fields, one row, dense
+    if every point is finite. The float32 buffer is used as it is (no per-point work)."""
+    pts = np.ascontiguousarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must be (N, 3), got {pts.shape}")
+    if not _LITTLE:  # the cloud says is_bigendian=False; keep the bytes little-endian
+        pts = pts.astype("<f4")
+    n = pts.shape[0]
+    fields = [PointField(name=c, offset=4 * i, datatype=_FLOAT32, count=1)
+              for i, c in enumerate("xyz")]
+    return PointCloud2(
+        header=header(stamp_s, frame_id), height=1, width=n, fields=fields,
+        is_bigendian=False, point_step=12, row_step=12 * n,
+        data=pts.reshape(-1).view(np.uint8), is_dense=bool(np.isfinite(pts).all()),
+    )
+
+
+def points_from_pointcloud(msg: Any) -> np.ndarray:
+    """``PointCloud2`` -> (N, 3) float32 x, y, z.
+
+    Zero copy for the layout :func:`pointcloud` writes (x, y, z float32 at offsets 0, 4,
+    8, point_step 12, no row padding, host byte order): the result is then a view of the
+    message buffer, read-only if the payload was ``bytes``. Other layouts (extra fields,
+    padding, float64, big-endian) are converted with one vectorised copy.
+    """
+    by_name = {f.name: f for f in msg.fields}
+    missing = [c for c in "xyz" if c not in by_name]
+    if missing:
+        raise ValueError(f"PointCloud2 has no field(s) {missing}")
+    n = msg.height * msg.width
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if n == 0:
+        return np.empty((0, 3), dtype=np.float32)
+    xyz = [by_name[c] for c in "xyz"]
+    if msg.point_step < 1 or data.size < msg.height * msg.row_step \
+            or msg.row_step < msg.width * msg.point_step:
+        raise ValueError("PointCloud2 data shorter than height * row_step")
+    same_order = bool(msg.is_bigendian) != _LITTLE
+    if (same_order and msg.point_step == 12 and msg.row_step == 12 * msg.width
+            and all(f.datatype == _FLOAT32 and f.offset == 4 * i for i, f in enumerate(xyz))):
+        return data[: 12 * n].view(np.float32).reshape(n, 3)
+    kinds = {_FLOAT32: "f4", _FLOAT64: "f8"}
+    if any(f.datatype not in kinds for f in xyz):
+        raise ValueError("x, y, z must be FLOAT32 or FLOAT64")
+    endian = ">" if msg.is_bigendian else "<"
+    dt = np.dtype({"names": list("xyz"), "formats": [endian + kinds[f.datatype] for f in xyz],
+                   "offsets": [f.offset for f in xyz], "itemsize": msg.point_step})
+    rows = data[: msg.height * msg.row_step].reshape(msg.height, msg.row_step)
+    rec = rows[:, : msg.width * msg.point_step].copy().view(dt).reshape(-1)
+    out = np.empty((n, 3), dtype=np.float32)
+    for i, c in enumerate("xyz"):
+        out[:, i] = rec[c]
+    return out
+
+
+# ----------------------------------------------------------------------------- state
+def odometry(position: Sequence[float], velocity: Sequence[float],
+             quaternion_xyzw: Sequence[float], stamp_s: float, frame_id: str = "world",
+             child_frame_id: str = "base_link",
+             angular_velocity: Sequence[float] = (0.0, 0.0, 0.0)) -> Any:
+    """``nav_msgs/Odometry``: position and linear velocity in world ENU (``frame_id``),
+    orientation as (x, y, z, w), body angular rates; covariances zero (unknown)."""
+    pose = _T["geometry_msgs/msg/PoseWithCovariance"](
+        pose=Pose(position=_vec3(position, Point), orientation=_quat(quaternion_xyzw)),
+        covariance=_ZERO_COV.copy())
+    twist = _T["geometry_msgs/msg/TwistWithCovariance"](
+        twist=Twist(linear=_vec3(velocity, Vector3), angular=_vec3(angular_velocity, Vector3)),
+        covariance=_ZERO_COV.copy())
+    return Odometry(header=header(stamp_s, frame_id), child_frame_id=child_frame_id,
+                    pose=pose, twist=twist)
+
+
+def odometry_values(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``Odometry`` -> (position (3,), velocity (3,), quaternion_xyzw (4,)) float64."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    v = msg.twist.twist.linear
+    return (np.array([p.x, p.y, p.z]), np.array([v.x, v.y, v.z]),
+            np.array([q.x, q.y, q.z, q.w]))
+
+
+def twist_stamped(vx: float, vy: float, vz: float, yaw_rate: float, stamp_s: float,
+                  frame_id: str = "world") -> Any:
+    """Velocity command: linear (vx, vy, vz) in ``frame_id`` (world ENU), angular.z =
+    yaw rate (rad/s)."""
+    return TwistStamped(header=header(stamp_s, frame_id), twist=Twist(
+        linear=_vec3((vx, vy, vz), Vector3), angular=_vec3((0.0, 0.0, yaw_rate), Vector3)))
+
+
+def twist_values(msg: Any) -> tuple[float, float, float, float]:
+    """``TwistStamped`` -> (vx, vy, vz, yaw_rate)."""
+    lin = msg.twist.linear
+    return (lin.x, lin.y, lin.z, msg.twist.angular.z)
+
+
+def pose_stamped(position: Sequence[float], stamp_s: float,
+                 quaternion_xyzw: Sequence[float] = (0.0, 0.0, 0.0, 1.0),
+                 frame_id: str = "world") -> Any:
+    """``geometry_msgs/PoseStamped`` (goals): position in world ENU."""
+    return PoseStamped(header=header(stamp_s, frame_id), pose=Pose(
+        position=_vec3(position, Point), orientation=_quat(quaternion_xyzw)))
+
+
+def pose_values(msg: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``PoseStamped`` -> (position (3,), quaternion_xyzw (4,)) float64."""
+    p, q = msg.pose.position, msg.pose.orientation
+    return np.array([p.x, p.y, p.z]), np.array([q.x, q.y, q.z, q.w])
+
+
+# ----------------------------------------------------------------------------- project
+def observation(values: np.ndarray, stamp_s: float, episode: int = 0, step: int = 0,
+                frame_id: str = "") -> Any:
+    """``skyloop_msgs/Observation`` from a (attributes,) or (frames, attributes) array."""
+    arr = np.asarray(values, dtype=np.float32)
+    if arr.ndim == 1:
+        arr = arr[None, :]
+    if arr.ndim != 2:
+        raise ValueError(f"observation must be 1-D or 2-D, got {arr.shape}")
+    return Observation(header=header(stamp_s, frame_id), episode=int(episode), step=int(step),
+                       frames=arr.shape[0], attributes=arr.shape[1],
+                       values=np.ascontiguousarray(arr).reshape(-1))
+
+
+def observation_values(msg: Any) -> np.ndarray:
+    """``Observation`` -> (frames, attributes) float32 (a view of the message buffer)."""
+    values = np.asarray(msg.values, dtype=np.float32)
+    if values.size != msg.frames * msg.attributes:
+        raise ValueError(f"{values.size} values for {msg.frames} x {msg.attributes}")
+    return values.reshape(msg.frames, msg.attributes)
+
+
+def episode_start(episode: int, seed: int, start: Sequence[float], goal: Sequence[float],
+                  stamp_s: float, scenario: str = "") -> Any:
+    """``EpisodeEvent`` START with the seed, start and goal positions (world ENU)."""
+    return EpisodeEvent(header=header(stamp_s), event=START, episode=int(episode),
+                        seed=int(seed), scenario=scenario, start=_vec3(start, Point),
+                        goal=_vec3(goal, Point), outcome=OUTCOMES["none"], steps=0)
+
+
+def episode_end(episode: int, outcome: str, steps: int, stamp_s: float,
+                seed: int = 0, scenario: str = "") -> Any:
+    """``EpisodeEvent`` END; ``outcome`` in success, collision, timeout, aborted."""
+    if outcome not in OUTCOMES or outcome == "none":
+        raise ValueError(f"outcome must be one of {sorted(set(OUTCOMES) - {'none'})}")
+    zero = Point(x=0.0, y=0.0, z=0.0)
+    return EpisodeEvent(header=header(stamp_s), event=END, episode=int(episode),
+                        seed=int(seed), scenario=scenario, start=zero, goal=zero,
+                        outcome=OUTCOMES[outcome], steps=int(steps))
+
+
+def outcome_name(msg: Any) -> str:
+    """Outcome of an ``EpisodeEvent`` as a string (``'none'`` for START)."""
+    return OUTCOME_NAMES.get(int(msg.outcome), f"unknown({msg.outcome})")
+
+
+def step_clock(step: int, sim_time_s: float, episode: int = 0) -> Any:
+    """``skyloop_msgs/StepClock``: lockstep step index and sim time."""
+    if not math.isfinite(sim_time_s):
+        raise ValueError("sim_time_s must be finite")
+    return StepClock(sim_time=time_msg(sim_time_s), episode=int(episode), step=int(step))
+
+
+def actor_weights(blob: bytes | bytearray | memoryview | np.ndarray, version: int,
+                  stamp_s: float = 0.0, fmt: str = "torch-state-dict",
+                  sha256: str = "") -> Any:
+    """``skyloop_msgs/ActorWeights``: an opaque weights blob with its version."""
+    data = np.frombuffer(blob, dtype=np.uint8) if not isinstance(blob, np.ndarray) \
+        else np.ascontiguousarray(blob).reshape(-1).view(np.uint8)
+    return ActorWeights(header=header(stamp_s), version=int(version), format=fmt,
+                        sha256=sha256, blob=data)
+
+
+def actor_blob(msg: Any) -> bytes:
+    """``ActorWeights`` -> the blob as ``bytes``."""
+    return np.asarray(msg.blob, dtype=np.uint8).tobytes()
