@@ -1,0 +1,294 @@
+"""The vehicle's MAVLink endpoint, PX4 SITL style: an API link and a GCS link over UDP.
+
+System 1, component 1 (autopilot), MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4, MAVLink 2.
+Two links, as PX4 SITL has them (all addresses configurable, loopback by default):
+
+* **api**: sends to UDP 14540 (where an offboard client such as MAVSDK or skyloop's
+  policy listens) from local port 14580;
+* **gcs**: sends to UDP 14550 (QGroundControl, MAVProxy) from local port 18570.
+
+Each link answers on its own socket to whoever spoke last (PX4's partner following);
+until someone speaks, it sends to its configured remote.
+
+Driving it: :meth:`VehicleLink.poll` is non-blocking and does all the work for one
+instant ``now`` (seconds on the vehicle's clock, simulated or wall): drain both sockets,
+handle every message, then send what is due (heartbeat every ``heartbeat_period`` and at
+once when the reported mode/arming/status changes; LOCAL_POSITION_NED + ATTITUDE every
+``telemetry_period`` from the latest :class:`VehicleTelemetry`). No threads and no clock
+reads, so a lockstep simulator calls it once per control step and gets the same
+behaviour every run; a real-time node calls it from its loop (or after ``select`` on
+:meth:`VehicleLink.fileno` values).
+
+Handled: COMMAND_LONG ARM_DISARM (400; param2 21196 forces a disarm), NAV_TAKEOFF (22;
+param7 = altitude in metres *above the takeoff point*, NaN = the commander's default --
+PX4 reads AMSL there; that needs the geodetic origin of issue 5), NAV_LAND (21),
+NAV_RETURN_TO_LAUNCH (20, i.e. mode RTL), DO_SET_MODE (176, PX4 custom modes), each
+answered by COMMAND_ACK carrying the commander's verdict; other commands are answered
+UNSUPPORTED. SET_POSITION_TARGET_LOCAL_NED is validated (:mod:`mavlink_bridge.validate`)
+and delivered to ``on_setpoint(command, now)``. Every refusal and every bad frame is
+counted (:attr:`VehicleLink.counters`); nothing received can raise out of :meth:`poll`.
+Commander events reach ground stations through :meth:`VehicleLink.statustext`.
+Further messages and commands plug in through :attr:`VehicleLink.handlers` (message type
+-> handler) and :attr:`VehicleLink.commands` (command id -> MAV_RESULT function).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from mavlink_bridge import frames
+from mavlink_bridge.interfaces import CommanderLike, VehicleTelemetry, VelocityCommand, Verdict
+from mavlink_bridge.modes import (
+    BaseMode,
+    Px4Mode,
+    base_mode_flags,
+    px4_mode_for_state,
+    state_for_px4_mode,
+)
+from mavlink_bridge.transport import Address, UdpEndpoint, mavlink
+from mavlink_bridge.validate import SetpointLimits, SetpointValidator
+
+log = logging.getLogger(__name__)
+
+FORCE_DISARM_MAGIC = 21196.0
+SEVERITY = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning": 4,
+            "notice": 5, "info": 6, "debug": 7}
+_TEMPORARY = {"no_setpoint_stream", "busy"}
+_UNSUPPORTED = {"unsupported_mode", "unsupported"}
+
+
+@dataclass
+class LinkConfig:
+    """One UDP link: bound to ``local``, sending to ``remote`` until someone speaks."""
+
+    local_port: int
+    remote_port: int
+    local_host: str = "127.0.0.1"
+    remote_host: str = "127.0.0.1"
+
+
+@dataclass
+class VehicleLinkConfig:
+    """The vehicle's MAVLink identity, links and rates (``gcs``/``api`` None: off)."""
+
+    system_id: int = 1
+    component_id: int = 1
+    api: LinkConfig | None = field(default_factory=lambda: LinkConfig(14580, 14540))
+    gcs: LinkConfig | None = field(default_factory=lambda: LinkConfig(18570, 14550))
+    heartbeat_period: float = 1.0  # s
+    telemetry_period: float = 0.1  # s, LOCAL_POSITION_NED and ATTITUDE
+    limits: SetpointLimits = field(default_factory=SetpointLimits)
+
+    @classmethod
+    def for_instance(cls, instance: int, **kwargs: Any) -> VehicleLinkConfig:
+        """PX4 SITL's multi-vehicle numbering: vehicle ``i`` is system ``1 + i``, its API
+        link 14580 + i -> 14540 + i, its GCS link 18570 + i -> 14550."""
+        return cls(system_id=1 + instance, api=LinkConfig(14580 + instance, 14540 + instance),
+                   gcs=LinkConfig(18570 + instance, 14550), **kwargs)
+
+
+def mav_result(verdict: Verdict) -> int:
+    """MAV_RESULT for a commander verdict (see :mod:`mavlink_bridge.interfaces`)."""
+    if verdict.accepted:
+        return mavlink.MAV_RESULT_ACCEPTED
+    if verdict.reason in _TEMPORARY:
+        return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    if verdict.reason in _UNSUPPORTED:
+        return mavlink.MAV_RESULT_UNSUPPORTED
+    return mavlink.MAV_RESULT_DENIED
+
+
+def _byte_param(value: float) -> int | None:
+    """A command parameter that must be a whole number 0..255, else None."""
+    if not math.isfinite(value) or value != int(value) or not 0 <= value <= 255:
+        return None
+    return int(value)
+
+
+class VehicleLink:
+    """The vehicle side of MAVLink: heartbeat, telemetry, commands, setpoints."""
+
+    def __init__(self, commander: CommanderLike, config: VehicleLinkConfig | None = None,
+                 on_setpoint: Callable[[VelocityCommand, float], None] | None = None) -> None:
+        self.config = c = config or VehicleLinkConfig()
+        self.commander = commander
+        self.on_setpoint = on_setpoint
+        self.validator = SetpointValidator(c.system_id, c.component_id, c.limits)
+        self.received: Counter[str] = Counter()  # good messages by type
+        self._counters: Counter[str] = Counter()  # command/handler outcomes
+        self.endpoints: dict[str, UdpEndpoint] = {}
+        try:
+            for name, lc in (("api", c.api), ("gcs", c.gcs)):
+                if lc is not None:
+                    self.endpoints[name] = UdpEndpoint(
+                        (lc.local_host, lc.local_port), (lc.remote_host, lc.remote_port),
+                        c.system_id, c.component_id, name=name)
+        except OSError:
+            self.close()
+            raise
+        # Extension points (parameters, missions, REQUEST_MESSAGE, ... of issue 5):
+        # a handler per message type, and one per COMMAND_LONG id returning a MAV_RESULT.
+        self.handlers: dict[str, Callable[[UdpEndpoint, Any, Address, float], None]] = {
+            "SET_POSITION_TARGET_LOCAL_NED": self._on_setpoint_msg,
+            "COMMAND_LONG": self._on_command_long,
+        }
+        self.commands: dict[int, Callable[[Any, float], int]] = {
+            mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
+            mavlink.MAV_CMD_NAV_TAKEOFF: self._cmd_takeoff,
+            mavlink.MAV_CMD_NAV_LAND: lambda msg, now: mav_result(self.commander.land(now)),
+            mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+                lambda msg, now: mav_result(self.commander.set_mode(now, "RTL")),
+            mavlink.MAV_CMD_DO_SET_MODE: self._cmd_set_mode,
+        }
+        self._telemetry: VehicleTelemetry | None = None
+        self._next_heartbeat: float | None = None
+        self._next_telemetry: float | None = None
+        self._last_reported: tuple[int, int, int] | None = None
+        self._now = 0.0
+
+    # ------------------------------------------------------------------ public
+    def address(self, name: str) -> Address:
+        """The bound local address of link ``"api"`` or ``"gcs"``."""
+        return self.endpoints[name].address
+
+    @property
+    def counters(self) -> Counter[str]:
+        """Everything counted so far: per-link frame counters (``api.rx_bad_crc``, ...),
+        setpoint refusals (``setpoint.nan``, ...), command outcomes (``cmd.*``)."""
+        out: Counter[str] = Counter(self._counters)
+        for name, ep in self.endpoints.items():
+            out.update({f"{name}.{k}": v for k, v in ep.counters.items()})
+        out.update({f"setpoint.{k.value}": v for k, v in self.validator.rejected.items()})
+        out["setpoint.accepted"] = self.validator.accepted
+        return out
+
+    def update_telemetry(self, telemetry: VehicleTelemetry) -> None:
+        """The vehicle state to report from now on (ENU/FLU, see the dataclass)."""
+        self._telemetry = telemetry
+
+    def statustext(self, text: str, severity: str | int = "info") -> None:
+        """Send a STATUSTEXT (truncated to 50 bytes) on every link."""
+        sev = severity if isinstance(severity, int) else SEVERITY.get(severity, 6)
+        raw = text.encode("utf-8", "replace")[:50]
+        self._broadcast(mavlink.MAVLink_statustext_message(sev, raw, 0, 0))
+
+    def poll(self, now: float) -> int:
+        """Handle everything waiting, then send what is due at ``now``; messages handled."""
+        self._now = now
+        handled = 0
+        for ep in self.endpoints.values():
+            for msg, addr in ep.receive():
+                handled += 1
+                try:
+                    self._handle(ep, msg, addr, now)
+                except Exception:  # a bug or odd input must not take the vehicle down
+                    self._counters["handler_error"] += 1
+                    if self._counters["handler_error"] & (self._counters["handler_error"] - 1) == 0:
+                        log.exception("error handling %s from %s", msg.get_type(), addr)
+        self._send_due(now)
+        return handled
+
+    def fileno(self) -> list[int]:
+        """Socket descriptors, for ``select`` in a real-time loop."""
+        return [ep.fileno() for ep in self.endpoints.values()]
+
+    def close(self) -> None:
+        for ep in self.endpoints.values():
+            ep.close()
+
+    def __enter__(self) -> VehicleLink:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ outgoing
+    def _broadcast(self, msg: Any) -> None:
+        for ep in self.endpoints.values():
+            ep.send(msg)
+
+    def _heartbeat_fields(self) -> tuple[int, int, int]:
+        cmd = self.commander
+        mode = px4_mode_for_state(str(cmd.state))
+        if cmd.failsafe:
+            status = mavlink.MAV_STATE_CRITICAL
+        elif cmd.armed:
+            status = mavlink.MAV_STATE_ACTIVE
+        else:
+            status = mavlink.MAV_STATE_STANDBY
+        return base_mode_flags(cmd.armed, mode), mode.custom_mode, status
+
+    def _send_due(self, now: float) -> None:
+        c = self.config
+        fields = self._heartbeat_fields()
+        if self._next_heartbeat is None or now >= self._next_heartbeat or \
+                fields != self._last_reported:
+            base, custom, status = fields
+            self._broadcast(mavlink.MAVLink_heartbeat_message(
+                mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom, status, 3))
+            self._last_reported = fields
+            self._next_heartbeat = now + c.heartbeat_period
+        t = self._telemetry
+        if t is not None and (self._next_telemetry is None or now >= self._next_telemetry):
+            self._next_telemetry = now + c.telemetry_period
+            ms = int(round(t.time * 1000.0)) & 0xFFFFFFFF
+            x, y, z = frames.enu_to_ned(*t.position)
+            vx, vy, vz = frames.enu_to_ned(*t.velocity)
+            self._broadcast(mavlink.MAVLink_local_position_ned_message(ms, x, y, z, vx, vy, vz))
+            roll, pitch, yaw = frames.euler_enu_to_ned(*t.attitude)
+            p, q, r = frames.body_rates_flu_to_frd(*t.body_rates)
+            self._broadcast(mavlink.MAVLink_attitude_message(ms, roll, pitch, yaw, p, q, r))
+
+    # ------------------------------------------------------------------ incoming
+    def _handle(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
+        kind = msg.get_type()
+        self.received[kind] += 1
+        handler = self.handlers.get(kind)
+        if handler is not None:
+            handler(ep, msg, addr, now)
+
+    def _on_setpoint_msg(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
+        result = self.validator.validate(msg)
+        if isinstance(result, VelocityCommand) and self.on_setpoint is not None:
+            self.on_setpoint(result, now)
+
+    def _on_command_long(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
+        c = self.config
+        if msg.target_system != c.system_id or msg.target_component not in (0, c.component_id):
+            self._counters["cmd.other_target"] += 1
+            return
+        handler = self.commands.get(msg.command)
+        result = mavlink.MAV_RESULT_UNSUPPORTED if handler is None else handler(msg, now)
+        self._counters[f"cmd.{msg.command}.{result}"] += 1
+        ep.send(mavlink.MAVLink_command_ack_message(
+            msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), addr)
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            self._send_due(now)  # the heartbeat shows a new mode/arming state at once
+
+    def _cmd_arm_disarm(self, msg: Any, now: float) -> int:
+        if msg.param1 == 1.0:
+            return mav_result(self.commander.arm(now))
+        if msg.param1 == 0.0:
+            return mav_result(self.commander.disarm(now, force=msg.param2 == FORCE_DISARM_MAGIC))
+        return mavlink.MAV_RESULT_DENIED
+
+    def _cmd_takeoff(self, msg: Any, now: float) -> int:
+        alt = msg.param7
+        return mav_result(self.commander.takeoff(now, None if math.isnan(alt) else alt))
+
+    def _cmd_set_mode(self, msg: Any, now: float) -> int:
+        base = _byte_param(msg.param1)
+        main, sub = _byte_param(msg.param2), _byte_param(msg.param3)
+        if base is None or main is None or sub is None:
+            return mavlink.MAV_RESULT_DENIED
+        if not base & BaseMode.CUSTOM_MODE_ENABLED:
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        state = state_for_px4_mode(Px4Mode(main, sub))
+        if state is None:
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        return mav_result(self.commander.set_mode(now, state))
