@@ -159,7 +159,8 @@ class VehicleLink:
     @property
     def counters(self) -> Counter[str]:
         """Everything counted so far: per-link frame counters (``api.rx_bad_crc``, ...),
-        setpoint refusals (``setpoint.nan``, ...), command outcomes (``cmd.*``)."""
+        setpoint refusals (``setpoint.nan``, ...), command outcomes (``cmd.<id>.<MAV_RESULT>``
+        for handled ids, ``cmd.unsupported``, ``cmd.other_target``), ``handler_error``."""
         out: Counter[str] = Counter(self._counters)
         for name, ep in self.endpoints.items():
             out.update({f"{name}.{k}": v for k, v in ep.counters.items()})
@@ -263,8 +264,12 @@ class VehicleLink:
             self._counters["cmd.other_target"] += 1
             return
         handler = self.commands.get(msg.command)
-        result = mavlink.MAV_RESULT_UNSUPPORTED if handler is None else handler(msg, now)
-        self._counters[f"cmd.{msg.command}.{result}"] += 1
+        if handler is None:  # one counter for all unknown ids: the key set stays bounded
+            result = mavlink.MAV_RESULT_UNSUPPORTED
+            self._counters["cmd.unsupported"] += 1
+        else:
+            result = handler(msg, now)
+            self._counters[f"cmd.{msg.command}.{result}"] += 1
         ep.send(mavlink.MAVLink_command_ack_message(
             msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), addr)
         if result == mavlink.MAV_RESULT_ACCEPTED:

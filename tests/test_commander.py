@@ -288,3 +288,16 @@ def test_offboard_from_armed_on_ground_and_land_mode_in_air() -> None:
     assert c.set_mode(sim.now, "LAND").accepted and c.state == State.LAND
     assert c.set_mode(sim.now, "HOLD").accepted and c.state == State.HOLD  # abort landing
     assert refused(c.set_mode(sim.now, "TAKEOFF"), "invalid_state")
+
+
+def test_takeoff_can_be_interrupted_by_offboard_or_land() -> None:
+    for target in ("OFFBOARD", "LAND"):
+        c = Commander()
+        sim = Sim(c)
+        c.arm(0.0)
+        c.takeoff(0.0, 5.0)
+        sim.stream(10, (0.0, 0.0, 0.5, 0.0))  # 1 s into the climb, setpoints streaming
+        assert c.state == State.TAKEOFF and sim.z > 1.0
+        assert c.set_mode(sim.now, target).accepted and c.state == target
+        out = sim.stream(1, (0.0, 0.0, 0.5, 0.0))
+        assert out.vz == (0.5 if target == "OFFBOARD" else -0.7)
