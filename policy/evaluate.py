@@ -40,7 +40,8 @@ class ActorController:
         except Exception as exc:  # torch raises many types for a corrupt file
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise ValueError(f"{path}: not a readable skyloop actor ({first})") from exc
-        self.name = f"actor {path}"
+        shipped = path.resolve() == SHIPPED_POLICY
+        self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
 
     @torch.no_grad()
     def __call__(self, state: np.ndarray) -> np.ndarray:

@@ -11,7 +11,8 @@ from pathlib import Path
 def _cmd_demo(args: argparse.Namespace) -> int:
     from skyloop.demo import run_demo
 
-    summary = run_demo(args.scenario, args.episodes, args.seed, Path(args.out_dir))
+    summary = run_demo(args.scenario, args.episodes, args.seed, Path(args.out_dir),
+                       policy=args.policy)
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=2))
     return 0
@@ -73,6 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=5)
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--out-dir", default="out")
+    p.add_argument("--policy", help="actor file or 'scripted'; default: the shipped policy")
     p.add_argument("--json", help="write the summary as JSON here")
     p.set_defaults(func=_cmd_demo)
 

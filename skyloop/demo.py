@@ -1,8 +1,9 @@
-"""``skyloop demo``: fly a controller through a scenario in the in-process env.
+"""``skyloop demo``: fly the shipped policy through a scenario in the in-process env.
 
-Until the full process graph lands (issue 4), the demo runs the scripted straight-line
-controller (:mod:`policy.scripted`) and says so; it prints one line per episode, a
-summary, and writes a picture of every episode's path.
+It prints one line per episode and a summary, flies the scripted straight-line
+controller (:mod:`policy.scripted`) on the same seeds for comparison, and writes a
+picture of every episode's path. (The full process graph over Zenoh and MAVLink
+replaces the in-process env here once ``skyloop up`` lands.)
 """
 
 from __future__ import annotations
@@ -13,16 +14,18 @@ from pathlib import Path
 import numpy as np
 
 from policy.env import UavNavEnv
+from policy.evaluate import make_controller
 from policy.rollout import run_episodes, summarize
 from policy.scripted import StraightLineController
 
 
-def run_demo(scenario: str, episodes: int, seed: int, out_dir: Path) -> dict:
+def run_demo(scenario: str, episodes: int, seed: int, out_dir: Path,
+             policy: str | None = None) -> dict:
     from sitl.render import render_scene
 
-    controller = StraightLineController()
+    controller = make_controller(policy)
     print(f"skyloop demo: {episodes} episodes of '{scenario}' flown by the "
-          f"{controller.name} (no learned policy yet), seed {seed}")
+          f"{controller.name}, in-process env, seeds {seed}..{seed + episodes - 1}")
     env = UavNavEnv(scenario=scenario)
     results, steps, t0 = [], 0, time.perf_counter()
     for r in run_episodes(env, controller, episodes, seed):
@@ -37,6 +40,11 @@ def run_demo(scenario: str, episodes: int, seed: int, out_dir: Path) -> dict:
     print(f"summary: success {summary['success_rate']:.0%} (95% CI {lo:.0%}-{hi:.0%}), "
           f"collision {summary['collision_rate']:.0%}, timeout {summary['timeout_rate']:.0%}, "
           f"mean steps {summary['mean_steps']:.0f}, {summary['env_steps_per_s']:.0f} env steps/s")
+    if not isinstance(controller, StraightLineController):
+        base = summarize(list(run_episodes(env, StraightLineController(), episodes, seed)))
+        summary["scripted_success_rate"] = base["success_rate"]
+        print(f"same seeds, scripted straight-line controller: success "
+              f"{base['success_rate']:.0%}, collision {base['collision_rate']:.0%}")
     out_dir.mkdir(parents=True, exist_ok=True)
     png = out_dir / f"demo_{scenario}.png"
     render_scene(env.world, start=np.array([r.start for r in results]),

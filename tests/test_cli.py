@@ -26,11 +26,11 @@ def test_render_writes_a_png(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 20_000
 
 
-def test_demo_says_it_is_the_scripted_controller_and_summarises(tmp_path):
+def test_demo_flies_the_shipped_policy_and_compares_with_scripted(tmp_path):
     js = tmp_path / "demo.json"
     out = skyloop("demo", "--episodes", "2", "--out-dir", str(tmp_path), "--json", str(js))
     assert out.returncode == 0, out.stderr[-2000:]
-    assert "scripted straight-line controller" in out.stdout
+    assert "shipped" in out.stdout and "scripted straight-line controller" in out.stdout
     assert "summary: success" in out.stdout
     data = json.loads(js.read_text())
     assert data["episodes"] == 2 and (tmp_path / "demo_valley.png").exists()
