@@ -1,0 +1,286 @@
+"""The episode log: one MCAP file per run, with ROS 2 schemas, in a rosbag2 directory.
+
+Layout: ``<out_dir>/<run>/<run>_0.mcap`` plus ``metadata.yaml`` (rosbag2 version 5, the
+format ROS 2 Humble writes, storage ``mcap``), so ``ros2 bag info/play <run>``,
+``rosbags`` (the directory or the ``.mcap`` itself), Foxglove and the ``mcap`` CLI all
+open it. MCAP profile ``ros2``, schema encoding ``ros2msg`` (the full concatenated
+``.msg`` text), message encoding ``cdr``, zero or zstd/lz4 chunk compression.
+
+Crash safety (a SIGKILL loses at most the episode in progress):
+
+- Each episode starts a fresh chunk and its END event closes it: at END the writer
+  appends a ``skyloop.episode`` metadata record (vehicle, episode, outcome, steps,
+  message count), then writes the chunk and flushes the file to the OS. Everything
+  up to the last finished episode is therefore on disk, as complete records.
+- Chunks also close when they reach ``chunk_size``; chunk CRCs are on.
+- Schema and channel records are written twice: inside the chunk (where MCAP readers
+  expect them) and at the top level of the data section, so a reader that skips one
+  corrupt chunk still knows every channel.
+- ``metadata.yaml`` and the MCAP summary (indexes, statistics) are written on
+  :meth:`EpisodeLogWriter.close`. A crashed run has neither; :mod:`bus.log_reader`
+  reads it by scanning, and ``rosbags`` reads the ``.mcap`` file itself by scanning too
+  (as long as the tail is not cut inside a record).
+
+The reader (episodes, incomplete and corrupt accounting) is :mod:`bus.log_reader`,
+re-exported here.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import time
+from collections import defaultdict
+from io import StringIO
+from pathlib import Path
+from typing import Any, BinaryIO
+
+from mcap.data_stream import RecordBuilder
+from mcap.records import Channel, Schema
+from mcap.writer import CompressionType, Writer
+from ruamel.yaml import YAML
+
+from bus.keys import parse_ros_topic, ros_topic
+from bus.log_reader import (
+    EPISODE_METADATA,
+    Episode,
+    EpisodeLogReader,
+    LoggedMessage,
+    LogReadError,
+    ReadReport,
+    read_episodes,
+)
+from bus.messages import END, EPISODE_EVENT, START, decode, encode, msgdef, outcome_name
+
+__all__ = ["EpisodeLogWriter", "Episode", "EpisodeLogReader", "LoggedMessage", "LogReadError",
+           "ReadReport", "read_episodes", "recover_log", "default_run_name", "EPISODE_METADATA"]
+
+PROFILE = "ros2"
+SCHEMA_ENCODING = "ros2msg"
+MESSAGE_ENCODING = "cdr"
+RUN_METADATA = "skyloop.run"
+LIBRARY = "skyloop.bus.log"
+_COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD,
+                "lz4": CompressionType.LZ4}
+#: Offered QoS written per topic (ROS 2 Humble string format): reliable, volatile,
+#: keep last 10; the profile a default ROS 2 publisher offers.
+_QOS_YAML = (
+    "- history: 1\n  depth: 10\n  reliability: 1\n  durability: 2\n"
+    "  deadline:\n    sec: 0\n    nsec: 0\n  lifespan:\n    sec: 0\n    nsec: 0\n"
+    "  liveliness: 1\n  liveliness_lease_duration:\n    sec: 0\n    nsec: 0\n"
+    "  avoid_ros_namespace_conventions: false"
+)
+_RUN_NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def default_run_name() -> str:
+    """``run-YYYYmmdd-HHMMSS-<pid>`` (local time)."""
+    return time.strftime("run-%Y%m%d-%H%M%S") + f"-{os.getpid()}"
+
+
+class EpisodeLogWriter:
+    """Write one run to ``<out_dir>/<run_name>/<run_name>_0.mcap``.
+
+    ``write(topic, msgtype, data, log_time_ns)`` takes CDR bytes on a ROS 2 topic name
+    (``/skyloop/<vehicle>/<topic>``); ``write_msg(vehicle, topic, msg, ...)`` encodes a
+    message first. Episode boundaries are taken from the ``skyloop_msgs/EpisodeEvent``
+    messages written (see the module docstring). Not thread-safe: one writer thread.
+    """
+
+    def __init__(self, out_dir: str | os.PathLike[str], run_name: str | None = None, *,
+                 chunk_size: int = 2 * 1024 * 1024, compression: str = "none",
+                 fsync: bool = False, metadata: dict[str, str] | None = None) -> None:
+        run_name = run_name or default_run_name()
+        if not _RUN_NAME_RE.match(run_name):
+            raise ValueError(f"run name must match {_RUN_NAME_RE.pattern}: {run_name!r}")
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}")
+        self.run_name = run_name
+        self.dir = Path(out_dir) / run_name
+        self.dir.mkdir(parents=True, exist_ok=False)
+        self.path = self.dir / f"{run_name}_0.mcap"
+        self._fsync = fsync
+        self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, chunk_size=chunk_size,
+                              compression=_COMPRESSION[compression], enable_crcs=True)
+        self._writer.start(profile=PROFILE, library=LIBRARY)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, tuple[int, str]] = {}  # topic -> (channel id, msgtype)
+        self.counts: dict[str, int] = defaultdict(int)  # topic -> messages written
+        self.first_ns: int | None = None
+        self.last_ns = 0
+        self._open_eps: dict[str | None, tuple[int, int]] = {}  # vehicle -> (episode, count)
+        self.episodes_started = self.episodes_ended = self.bad_events = 0
+        self.closed = False
+        run_meta = {"run": run_name, "host": socket.gethostname(), "pid": str(os.getpid()),
+                    "started_unix_ns": str(time.time_ns())}
+        self._writer.add_metadata(RUN_METADATA, {**run_meta, **(metadata or {})})
+        self._file.flush()
+
+    # ------------------------------------------------------------------ channels
+    def _top_level(self, record: Schema | Channel) -> None:
+        """Write a copy of a schema/channel record between chunks (see module doc)."""
+        builder = RecordBuilder()
+        record.write(builder)
+        self._file.write(builder.end())
+
+    def _channel(self, topic: str, msgtype: str) -> int:
+        known = self._channels.get(topic)
+        if known is not None:
+            if known[1] != msgtype:
+                raise ValueError(f"{topic} was {known[1]}, now {msgtype}")
+            return known[0]
+        self._writer.flush()  # close the open chunk so the copies sit between chunks
+        schema_id = self._schemas.get(msgtype)
+        if schema_id is None:
+            text = msgdef(msgtype).encode()
+            schema_id = self._writer.register_schema(msgtype, SCHEMA_ENCODING, text)
+            self._schemas[msgtype] = schema_id
+            self._top_level(Schema(id=schema_id, name=msgtype, encoding=SCHEMA_ENCODING,
+                                   data=text))
+        meta = {"offered_qos_profiles": _QOS_YAML}
+        channel_id = self._writer.register_channel(topic, MESSAGE_ENCODING, schema_id, meta)
+        self._top_level(Channel(id=channel_id, schema_id=schema_id, topic=topic,
+                                message_encoding=MESSAGE_ENCODING, metadata=meta))
+        self._channels[topic] = (channel_id, msgtype)
+        return channel_id
+
+    # ------------------------------------------------------------------ writing
+    def write(self, topic: str, msgtype: str, data: bytes, log_time_ns: int,
+              publish_time_ns: int | None = None) -> None:
+        """Append one CDR message on ROS 2 topic ``topic``."""
+        if self.closed:
+            raise RuntimeError("writer is closed")
+        channel_id = self._channel(topic, msgtype)
+        vehicle = _vehicle_of(topic)
+        event = None
+        if msgtype == EPISODE_EVENT:
+            try:
+                event = decode(EPISODE_EVENT, data)
+            except Exception:  # noqa: BLE001 - logged as data, boundary not marked
+                self.bad_events += 1
+            if event is not None and event.event == START:
+                self._end_open(vehicle)
+                self._writer.flush()  # the episode starts a fresh chunk
+                self._open_eps[vehicle] = (int(event.episode), 0)
+                self.episodes_started += 1
+        self._writer.add_message(channel_id, log_time_ns, data,
+                                 log_time_ns if publish_time_ns is None else publish_time_ns)
+        self.counts[topic] += 1
+        self.first_ns = log_time_ns if self.first_ns is None else min(self.first_ns, log_time_ns)
+        self.last_ns = max(self.last_ns, log_time_ns)
+        if vehicle in self._open_eps:
+            ep, n = self._open_eps[vehicle]
+            self._open_eps[vehicle] = (ep, n + 1)
+        if event is not None and event.event == END:
+            self._finish_episode(vehicle, event)
+
+    def write_msg(self, vehicle: str, topic: str, msg: Any, log_time_ns: int | None = None,
+                  publish_time_ns: int | None = None) -> None:
+        """Encode ``msg`` and append it on ``/skyloop/<vehicle>/<topic>``."""
+        t = time.time_ns() if log_time_ns is None else log_time_ns
+        self.write(ros_topic(vehicle, topic), msg.__msgtype__, encode(msg), t, publish_time_ns)
+
+    def _end_open(self, vehicle: str | None) -> None:
+        """A START while an episode is open: the old one stays incomplete (no END)."""
+        self._open_eps.pop(vehicle, None)
+
+    def _finish_episode(self, vehicle: str | None, event: Any) -> None:
+        episode, count = self._open_eps.pop(vehicle, (int(event.episode), -1))
+        self.episodes_ended += 1
+        # The metadata record goes out before the chunk holding the episode's tail, so a
+        # reader meets the expected count before the END event it checks it against.
+        self._writer.add_metadata(EPISODE_METADATA, {
+            "vehicle": vehicle or "", "episode": str(episode), "outcome": outcome_name(event),
+            "steps": str(int(event.steps)), "messages": str(count)})
+        self.flush()
+
+    def flush(self) -> None:
+        """Close the open chunk and hand everything to the OS (``fsync`` if asked)."""
+        self._writer.flush()
+        if self._fsync:
+            os.fsync(self._file.fileno())
+
+    # ------------------------------------------------------------------ closing
+    def close(self) -> None:
+        """Write the MCAP summary and footer, then ``metadata.yaml`` (idempotent)."""
+        if self.closed:
+            return
+        self.closed = True
+        info = self._bag_metadata()
+        self._writer.add_metadata("rosbag2", {"serialized_metadata": _yaml(info)})
+        self._writer.finish()
+        self._file.flush()
+        if self._fsync:
+            os.fsync(self._file.fileno())
+        self._file.close()
+        tmp = self.dir / "metadata.yaml.tmp"
+        tmp.write_text(_yaml({"rosbag2_bagfile_information": info}) + "\n")
+        tmp.replace(self.dir / "metadata.yaml")
+
+    def _bag_metadata(self) -> dict[str, Any]:
+        start = self.first_ns or 0
+        duration = max(0, self.last_ns - start)
+        total = sum(self.counts.values())
+        info = {
+            "version": 5,
+            "storage_identifier": "mcap",
+            "relative_file_paths": [self.path.name],
+            "duration": {"nanoseconds": duration},
+            "starting_time": {"nanoseconds_since_epoch": start},
+            "message_count": total,
+            "topics_with_message_count": [
+                {"topic_metadata": {"name": topic, "type": msgtype,
+                                    "serialization_format": MESSAGE_ENCODING,
+                                    "offered_qos_profiles": _QOS_YAML},
+                 "message_count": self.counts[topic]}
+                for topic, (_, msgtype) in self._channels.items()],
+            "compression_format": "",
+            "compression_mode": "",
+            "files": [{"path": self.path.name,
+                       "starting_time": {"nanoseconds_since_epoch": start},
+                       "duration": {"nanoseconds": duration}, "message_count": total}],
+        }
+        return info
+
+    def __enter__(self) -> EpisodeLogWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def recover_log(src: str | os.PathLike[str], out_dir: str | os.PathLike[str] | None = None,
+                run_name: str | None = None) -> tuple[Path, ReadReport]:
+    """Rewrite what is readable of a crashed or damaged log as a finished one.
+
+    A run killed before :meth:`EpisodeLogWriter.close` has no MCAP summary, footer or
+    ``metadata.yaml``, which ``rosbags``, ``ros2 bag`` and the ``mcap`` tools need; this
+    copies every readable message (incomplete episodes included, still without their
+    END) into ``<out_dir>/<run_name>`` (default: next to the source run, named
+    ``<run>-recovered``). Returns the new run directory and the read report.
+    """
+    reader = EpisodeLogReader(src)
+    base = reader.path.parent
+    out = Path(out_dir) if out_dir is not None else base.parent
+    with EpisodeLogWriter(out, run_name or f"{base.name}-recovered",
+                          metadata={"recovered_from": str(reader.path)}) as writer:
+        for msg in reader.messages():
+            writer.write(msg.topic, msg.msgtype, msg.data, msg.log_time_ns, msg.publish_time_ns)
+    return writer.dir, reader.report
+
+
+def _yaml(data: dict[str, Any]) -> str:
+    yaml = YAML(typ="safe")
+    yaml.default_flow_style = False
+    out = StringIO()
+    yaml.dump(data, out)
+    return out.getvalue().strip()
+
+
+def _vehicle_of(topic: str) -> str | None:
+    try:
+        return parse_ros_topic(topic)[0]
+    except ValueError:
+        return None

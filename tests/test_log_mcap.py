@@ -1,0 +1,243 @@
+"""bus.log: the MCAP episode log opens with the mcap reader and with rosbags; the
+episode reader groups, reports incomplete episodes, and survives SIGKILL, truncation
+and corruption with a count of what was lost."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag2 import Reader as Rosbag2Reader
+
+from bus import keys
+from bus import messages as m
+from bus.log import (
+    EpisodeLogReader,
+    EpisodeLogWriter,
+    LogReadError,
+    read_episodes,
+    recover_log,
+)
+from bus.mcap_scan import CHUNK, MAGIC, records
+
+REPO = Path(__file__).resolve().parents[1]
+PTS = np.random.default_rng(0).normal(scale=10, size=(2000, 3)).astype(np.float32)
+STEPS = 6
+PER_EPISODE = 2 + 3 * STEPS  # START, END, and lidar + odom + cmd_vel per step
+
+
+def write_episode(w, ep, t, vehicle="uav1", end=True, steps=STEPS):
+    w.write_msg(vehicle, keys.EPISODE, m.episode_start(ep, 100 + ep, (0, 0, 1), (9, 0, 1), 0.0), t)
+    for s in range(steps):
+        t += 1
+        w.write_msg(vehicle, keys.LIDAR_POINTS, m.pointcloud(PTS + ep, 0.1 * s), t)
+        w.write_msg(vehicle, keys.ODOM, m.odometry((s, ep, 1), (1, 0, 0), (0, 0, 0, 1), 0.1 * s), t)
+        w.write_msg(vehicle, keys.CMD_VEL, m.twist_stamped(1, 0, 0, 0.1 * ep, 0.1 * s), t)
+    if end:
+        outcome = ("success", "collision", "timeout")[ep % 3]
+        w.write_msg(vehicle, keys.EPISODE, m.episode_end(ep, outcome, steps, 0.1 * steps), t + 1)
+    return t + 2
+
+
+def make_run(out, name="run", episodes=3, compression="none", chunk_size=64 * 1024):
+    with EpisodeLogWriter(out, name, compression=compression, chunk_size=chunk_size) as w:
+        t = 1_000
+        for ep in range(episodes):
+            t = write_episode(w, ep, t)
+            w.write_msg("uav1", keys.ACTOR, m.actor_weights(b"w" * 100, ep + 1), t)
+    return w.dir
+
+
+# ------------------------------------------------------------------ standard readers
+@pytest.mark.parametrize("compression", ["none", "zstd", "lz4"])
+def test_opens_with_mcap_and_rosbags(tmp_path, compression):
+    run = make_run(tmp_path, compression=compression)
+    assert sorted(p.name for p in run.iterdir()) == ["metadata.yaml", "run_0.mcap"]
+    expected = {"/skyloop/uav1/episode": 6, "/skyloop/uav1/lidar/points": 3 * STEPS,
+                "/skyloop/uav1/odom": 3 * STEPS, "/skyloop/uav1/cmd_vel": 3 * STEPS,
+                "/skyloop/uav1/actor": 3}
+    with open(run / "run_0.mcap", "rb") as f:
+        reader = make_reader(f)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+        counts = summary.statistics.channel_message_counts
+        assert {c.topic: counts[i] for i, c in summary.channels.items()} == expected
+        assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+        for schema in summary.schemas.values():
+            assert schema.encoding == "ros2msg"
+            assert schema.data.decode() == m.msgdef(schema.name)
+        names = [md.name for md in reader.iter_metadata()]
+        assert names.count("skyloop.episode") == 3 and "skyloop.run" in names
+        assert "rosbag2" in names
+        assert sum(1 for _ in reader.iter_messages()) == sum(expected.values())
+    for path in (run, run / "run_0.mcap"):  # the rosbag2 directory and the bare file
+        with AnyReader([path]) as ar:
+            assert {c.topic: c.msgcount for c in ar.connections} == expected
+            types = {c.topic: c.msgtype for c in ar.connections}
+            assert types["/skyloop/uav1/episode"] == m.EPISODE_EVENT
+            clouds = [ar.deserialize(raw, c.msgtype) for c, _, raw in ar.messages()
+                      if c.msgtype == m.POINTCLOUD2]
+            assert len(clouds) == 3 * STEPS
+            np.testing.assert_array_equal(m.points_from_pointcloud(clouds[-1]), PTS + 2)
+    with Rosbag2Reader(run) as bag:  # metadata.yaml
+        assert bag.message_count == sum(expected.values())
+        assert {t: i.msgcount for t, i in bag.topics.items()} == expected
+
+
+# ------------------------------------------------------------------ episodes
+def test_reader_groups_episodes(tmp_path):
+    eps, rep = read_episodes(make_run(tmp_path))
+    assert [(e.index, e.outcome, e.steps, e.seed) for e in eps] == [
+        (0, "success", STEPS, 100), (1, "collision", STEPS, 101), (2, "timeout", STEPS, 102)]
+    for e in eps:
+        assert e.complete and e.seen == e.expected == PER_EPISODE
+        assert len(e.topic(keys.ODOM)) == STEPS
+        assert [m.twist_values(x.decode())[3] for x in e.topic(keys.CMD_VEL)] == [0.1 * e.index] * STEPS
+    assert rep.clean and rep.messages == 3 * PER_EPISODE + 3 and rep.messages_lost == 0
+    assert rep.outside_episodes == 3  # the actor weights between episodes
+    eps, _ = read_episodes(tmp_path / "run", topics={keys.ODOM})
+    assert {x.name for e in eps for x in e.messages} == {keys.ODOM}
+    assert all(e.seen == PER_EPISODE for e in eps)
+
+
+def test_interleaved_vehicles(tmp_path):
+    with EpisodeLogWriter(tmp_path, "two") as w:
+        w.write_msg("uav1", keys.EPISODE, m.episode_start(0, 1, (0, 0, 0), (1, 0, 0), 0.0))
+        w.write_msg("uav2", keys.EPISODE, m.episode_start(0, 2, (0, 0, 0), (1, 0, 0), 0.0))
+        for s in range(4):
+            for v in ("uav1", "uav2"):
+                w.write_msg(v, keys.ODOM, m.odometry((s, 0, 0), (0, 0, 0), (0, 0, 0, 1), s))
+        w.write_msg("uav2", keys.EPISODE, m.episode_end(0, "collision", 4, 0.4))
+        w.write_msg("uav1", keys.EPISODE, m.episode_end(0, "success", 4, 0.4))
+    eps, rep = read_episodes(w.dir)
+    assert [(e.vehicle, e.outcome, e.seed, len(e.topic(keys.ODOM))) for e in eps] == [
+        ("uav2", "collision", 2, 4), ("uav1", "success", 1, 4)]
+    assert rep.clean
+
+
+def test_closed_mid_episode_is_incomplete(tmp_path):
+    with EpisodeLogWriter(tmp_path, "cut") as w:
+        t = write_episode(w, 0, 1)
+        write_episode(w, 1, t, end=False)
+    eps, rep = read_episodes(w.dir)
+    assert [e.index for e in eps] == [0]
+    assert rep.finished and (rep.episodes_complete, rep.episodes_incomplete) == (1, 1)
+    eps, _ = read_episodes(w.dir, include_incomplete=True)
+    assert eps[1].problem.startswith("no END") and eps[1].outcome is None
+
+
+# ------------------------------------------------------------------ crash and damage
+WRITER = """
+import sys, time
+import numpy as np
+from bus import keys, messages as m
+from bus.log import EpisodeLogWriter
+pts = np.random.default_rng(0).normal(size=(2000, 3)).astype(np.float32)
+w = EpisodeLogWriter(sys.argv[1], "killed", chunk_size=64 * 1024)
+t = 1
+for ep in range(3):
+    w.write_msg("uav1", keys.EPISODE, m.episode_start(ep, ep, (0, 0, 1), (9, 0, 1), 0.0), t)
+    for s in range(10):
+        t += 1
+        w.write_msg("uav1", keys.LIDAR_POINTS, m.pointcloud(pts, s), t)
+        w.write_msg("uav1", keys.ODOM, m.odometry((s, 0, 1), (1, 0, 0), (0, 0, 0, 1), s), t)
+    if ep < 2:
+        w.write_msg("uav1", keys.EPISODE, m.episode_end(ep, "success", 10, 1.0), t)
+print("MID-EPISODE", flush=True)
+time.sleep(60)
+"""
+
+
+def test_sigkill_mid_episode_loses_only_that_episode(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path)], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        line = proc.stdout.readline()
+        assert line.strip() == b"MID-EPISODE", proc.stderr.read().decode()[-2000:]
+    finally:
+        proc.kill()  # SIGKILL: no atexit, no close, no flush
+        proc.wait(10)
+    run = tmp_path / "killed"
+    assert not (run / "metadata.yaml").exists()
+    eps, rep = read_episodes(run, include_incomplete=True)
+    assert [(e.index, e.complete) for e in eps] == [(0, True), (1, True), (2, False)]
+    assert all(e.seen == e.expected == 22 for e in eps[:2])
+    assert eps[2].problem.startswith("no END") and 0 < eps[2].seen < 21
+    assert not rep.finished and rep.episodes_incomplete == 1
+    # rewritten as a finished log, the standard tools open what survived
+    fixed, _ = recover_log(run)
+    with AnyReader([fixed]) as ar:
+        assert sum(c.msgcount for c in ar.connections) == rep.messages
+    assert read_episodes(fixed)[1].episodes_complete == 2
+
+
+def _layout(path):
+    """Offsets of the skyloop.episode metadata records and of the chunks."""
+    data = path.read_bytes()
+    metas, chunks, pos = [], [], 0
+    while (pos := data.find(b"skyloop.episode", pos + 1)) > 0:
+        metas.append(pos - 13)  # opcode, length, string length
+    for op, body, stop in records(data, len(MAGIC), len(data) - len(MAGIC)):
+        if op == CHUNK:
+            chunks.append((body - 9, stop))
+    return data, metas, chunks
+
+
+def test_truncated_file_reads_up_to_the_damage(tmp_path):
+    src = make_run(tmp_path) / "run_0.mcap"
+    data, metas, _ = _layout(src)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: metas[2] - 100])  # inside the last episode's final chunk
+    eps, rep = read_episodes(cut, include_incomplete=True)
+    assert [(e.index, e.complete) for e in eps] == [(0, True), (1, True), (2, False)]
+    assert rep.truncated and not rep.finished and rep.skipped_bytes > 0
+    assert rep.episodes_complete == 2 and rep.episodes_incomplete == 1
+    for n in range(8, len(data), 1999):  # any cut: no exception, complete ones are exact
+        cut.write_bytes(data[:n])
+        eps, rep = read_episodes(cut)
+        assert [e.index for e in eps] == list(range(len(eps)))
+        assert all(e.seen == PER_EPISODE for e in eps)
+
+
+def test_corrupt_chunk_is_skipped_and_counted(tmp_path):
+    src = make_run(tmp_path) / "run_0.mcap"
+    data, metas, chunks = _layout(src)
+    start, stop = max(((a, b) for a, b in chunks if metas[0] < a < metas[1]),
+                      key=lambda c: c[1] - c[0])  # a chunk inside episode 1
+    bad = bytearray(data)
+    mid = (start + stop) // 2
+    bad[mid:mid + 16] = bytes(x ^ 0xFF for x in bad[mid:mid + 16])
+    (tmp_path / "bad.mcap").write_bytes(bad)
+    eps, rep = read_episodes(tmp_path / "bad.mcap", include_incomplete=True)
+    assert [(e.index, e.complete) for e in eps] == [(0, True), (1, False), (2, True)]
+    assert eps[1].problem == "damaged data inside the episode"
+    assert rep.corrupt_chunks == 1 and rep.finished and rep.messages_lost > 0
+    # a broken record length: the reader resynchronises on the next good record
+    bad = bytearray(data)
+    bad[start + 1:start + 9] = b"\xff" * 8
+    (tmp_path / "len.mcap").write_bytes(bad)
+    eps, rep = read_episodes(tmp_path / "len.mcap", include_incomplete=True)
+    assert [(e.index, e.complete) for e in eps] == [(0, True), (1, False), (2, True)]
+    assert rep.corrupt_records >= 1 and rep.skipped_bytes >= stop - start
+
+
+def test_not_a_log(tmp_path):
+    (tmp_path / "junk.mcap").write_bytes(os.urandom(5000))
+    (tmp_path / "empty.mcap").write_bytes(b"")
+    for name in ("junk.mcap", "empty.mcap"):
+        eps, rep = read_episodes(tmp_path / name)
+        assert eps == [] and "not an MCAP file" in rep.errors[0] and not rep.clean
+    with pytest.raises(LogReadError):
+        EpisodeLogReader(tmp_path / "missing.mcap")
+    (tmp_path / "d").mkdir()
+    with pytest.raises(LogReadError):
+        EpisodeLogReader(tmp_path / "d")
+    with pytest.raises(FileExistsError):  # one directory per run, never overwritten
+        make_run(tmp_path, name="d")
