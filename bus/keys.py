@@ -37,7 +37,9 @@ class Topic:
     ``congestion`` is ``"block"`` (the publisher waits rather than dropping; used for
     every topic by default because lockstep and the log need every message and large
     payloads are lost silently otherwise) or ``"drop"``. ``express`` sends without
-    batching (small, latency-critical messages only).
+    batching; it is off for every topic so that the messages one session publishes
+    reach a subscriber in publish order across topics (an express message can overtake
+    a batched one, e.g. a step's command overtaking the episode's END event).
     """
 
     name: str
@@ -57,14 +59,14 @@ TOPICS: dict[str, Topic] = {
         Topic(TRUTH, "nav_msgs/msg/Odometry",
               "ground-truth state (pose and velocity in world ENU)"),
         Topic(CMD_VEL, "geometry_msgs/msg/TwistStamped",
-              "velocity command, world ENU, angular.z = yaw rate", express=True),
+              "velocity command, world ENU, angular.z = yaw rate"),
         Topic(GOAL, "geometry_msgs/msg/PoseStamped", "navigation goal, world ENU"),
         Topic(OBSERVATION, "skyloop_msgs/msg/Observation",
               "perception output (35 attributes, or 3 x 35 stacked)"),
         Topic(EPISODE, "skyloop_msgs/msg/EpisodeEvent",
               "episode start (seed, start, goal) and end (outcome, steps)"),
         Topic(CLOCK, "skyloop_msgs/msg/StepClock",
-              "lockstep step clock (step index, sim time)", express=True),
+              "lockstep step clock (step index, sim time)"),
         Topic(ACTOR, "skyloop_msgs/msg/ActorWeights",
               "actor weights blob + version (actor-learner)"),
     )

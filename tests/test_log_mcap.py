@@ -98,7 +98,8 @@ def test_reader_groups_episodes(tmp_path):
     for e in eps:
         assert e.complete and e.seen == e.expected == PER_EPISODE
         assert len(e.topic(keys.ODOM)) == STEPS
-        assert [m.twist_values(x.decode())[3] for x in e.topic(keys.CMD_VEL)] == [0.1 * e.index] * STEPS
+        yaw_rates = [m.twist_values(x.decode())[3] for x in e.topic(keys.CMD_VEL)]
+        assert yaw_rates == [0.1 * e.index] * STEPS
     assert rep.clean and rep.messages == 3 * PER_EPISODE + 3 and rep.messages_lost == 0
     assert rep.outside_episodes == 3  # the actor weights between episodes
     eps, _ = read_episodes(tmp_path / "run", topics={keys.ODOM})

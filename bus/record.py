@@ -1,0 +1,226 @@
+"""The recorder: every message under ``skyloop/**`` (or one vehicle's) into the MCAP log.
+
+The Zenoh callback only copies the payload into a bounded queue with its receive time
+(it never blocks: a full queue is a *counted* drop); one writer thread validates each
+payload against its topic's type (an undecodable payload is counted, not written, so
+the log stays readable by every tool) and appends it to the
+:class:`~bus.log.EpisodeLogWriter` under the ROS 2 topic ``/skyloop/<vehicle>/<topic>``.
+Stopping undeclares the subscriber, drains the queue, then finishes the file.
+
+``main(argv)`` is the ``skyloop record`` command (``python -m bus.record`` works too).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from bus.keys import key_all, msgtype, parse_key
+from bus.log import EpisodeLogWriter
+from bus.messages import decode
+from bus.node import RateLimitedLog
+from bus.session import SessionConfig, open_session
+
+log = logging.getLogger("skyloop.record")
+_STOP = object()
+
+
+@dataclass
+class RecordResult:
+    """Where the run went and what happened to the messages."""
+
+    path: Path  # the run directory (MCAP file + metadata.yaml)
+    counters: dict[str, int] = field(default_factory=dict)
+
+
+class Recorder:
+    """Subscribe ``skyloop/**`` (or ``skyloop/<vehicle>/**``) on ``session`` and write
+    to ``writer`` from a background thread. Counters (:meth:`counters`): ``received``,
+    ``written``, ``dropped`` (queue full), ``undecodable``, ``unknown_topic``,
+    ``write_errors``, plus ``episodes_started``/``episodes_ended`` of the writer."""
+
+    def __init__(self, session: zenoh.Session, writer: EpisodeLogWriter,
+                 vehicle: str | None = None, queue_size: int = 512,
+                 validate: bool = True) -> None:
+        self.writer = writer
+        self.validate = validate
+        self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self._lock = threading.Lock()
+        self._counts = dict.fromkeys(("received", "written", "dropped", "undecodable",
+                                      "unknown_topic", "write_errors"), 0)
+        self._drop_log = RateLimitedLog(log, 5.0)
+        self._bad_log = RateLimitedLog(log, 5.0)
+        self._thread = threading.Thread(target=self._run, name="skyloop-record", daemon=True)
+        self._thread.start()
+        self.key_expr = key_all(vehicle)
+        self._sub: zenoh.Subscriber | None = session.declare_subscriber(
+            self.key_expr, self._on_sample)
+        self._stopped = False
+
+    def _count(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._counts[name] += n
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        """Zenoh thread: copy and enqueue, never block, never raise."""
+        try:
+            item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
+            self._count("received")
+            self._q.put_nowait(item)
+        except queue.Full:
+            self._count("dropped")
+            self._drop_log(logging.WARNING, "recorder queue full: message on %s dropped",
+                           item[0])
+        except Exception:  # noqa: BLE001 - never raise into Zenoh
+            self._count("dropped")
+            self._drop_log(logging.ERROR, "recorder callback failed", exc_info=True)
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is _STOP:
+                return
+            key_expr, data, t_ns = item
+            try:
+                _, topic = parse_key(key_expr)
+                kind = msgtype(topic)
+            except (ValueError, KeyError):
+                self._count("unknown_topic")
+                self._bad_log(logging.WARNING, "not a skyloop topic, not recorded: %s",
+                              key_expr)
+                continue
+            if self.validate:
+                try:
+                    decode(kind, data)
+                except Exception as err:  # noqa: BLE001 - counted, not written
+                    self._count("undecodable")
+                    self._bad_log(logging.WARNING, "%s: payload does not decode as %s: %s",
+                                  key_expr, kind, err)
+                    continue
+            try:
+                self.writer.write("/" + key_expr, kind, data, t_ns)
+                self._count("written")
+            except Exception:  # noqa: BLE001 - keep recording the rest
+                self._count("write_errors")
+                self._bad_log(logging.ERROR, "writing %s failed", key_expr, exc_info=True)
+
+    def counters(self) -> dict[str, int]:
+        """Snapshot of the counters."""
+        with self._lock:
+            out = dict(self._counts)
+        out["queued"] = self._q.qsize()
+        out["episodes_started"] = self.writer.episodes_started
+        out["episodes_ended"] = self.writer.episodes_ended
+        return out
+
+    def wait_written(self, n: int, timeout: float = 10.0) -> bool:
+        """Wait until ``n`` messages have been written (or ``timeout`` s pass)."""
+        deadline = time.monotonic() + timeout
+        while self.counters()["written"] < n:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.005)
+        return True
+
+    def stop(self, timeout: float = 30.0) -> dict[str, int]:
+        """Undeclare the subscriber, drain the queue, finish the file; return counters."""
+        if not self._stopped:
+            self._stopped = True
+            sub, self._sub = self._sub, None
+            if sub is not None:
+                sub.undeclare()
+            self._q.put(_STOP)
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.error("recorder writer thread did not finish within %.0f s", timeout)
+            else:
+                self.writer.close()
+        return self.counters()
+
+
+def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
+               stop_event: threading.Event | None = None, *, vehicle: str | None = None,
+               run_name: str | None = None, compression: str = "none",
+               queue_size: int = 512, ready: threading.Event | None = None) -> RecordResult:
+    """Record until ``stop_event`` is set (or Ctrl-C); return the run directory and
+    counters. ``ready`` is set once the subscriber is declared."""
+    stop = stop_event if stop_event is not None else threading.Event()
+    session = open_session(session_config)
+    try:
+        writer = EpisodeLogWriter(out_dir, run_name, compression=compression,
+                                  metadata={"vehicle": vehicle or "*"})
+        recorder = Recorder(session, writer, vehicle, queue_size=queue_size)
+        log.info("recording %s into %s", recorder.key_expr, writer.path)
+        if ready is not None:
+            ready.set()
+        try:
+            while not stop.wait(0.5):
+                pass
+        except KeyboardInterrupt:
+            pass
+        counters = recorder.stop()
+    finally:
+        session.close()
+    return RecordResult(writer.dir, counters)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Arguments of ``skyloop record``."""
+    p = argparse.ArgumentParser(
+        prog="skyloop record",
+        description="Record every skyloop topic from the Zenoh bus into one MCAP file per "
+                    "run (ROS 2 schemas; a rosbag2 directory with metadata.yaml).")
+    p.add_argument("--out", default="logs", metavar="DIR",
+                   help="directory for run directories (default: logs)")
+    p.add_argument("--vehicle", default=None, help="record one vehicle (default: all)")
+    p.add_argument("--run-name", default=None,
+                   help="run directory name (default: run-<date>-<time>-<pid>)")
+    p.add_argument("--compression", choices=("none", "zstd", "lz4"), default="none",
+                   help="MCAP chunk compression (default: none)")
+    p.add_argument("--queue", type=int, default=512,
+                   help="messages buffered between Zenoh and the writer (default: 512)")
+    p.add_argument("--mode", choices=("peer", "client", "router"), default=None,
+                   help="Zenoh mode (default: $SKYLOOP_ZENOH_MODE or peer)")
+    p.add_argument("--connect", default=None,
+                   help="Zenoh endpoints to connect to, comma-separated")
+    p.add_argument("--listen", default=None, help="Zenoh endpoints to listen on")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``skyloop record``: record until SIGINT/SIGTERM, then print where the log is."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    cfg = SessionConfig.from_env()
+    overrides = {k: v for k, v in (("mode", args.mode), ("connect", args.connect),
+                                   ("listen", args.listen)) if v is not None}
+    if overrides:
+        cfg = replace(cfg, **overrides)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    result = run_record(args.out, cfg, stop, vehicle=args.vehicle, run_name=args.run_name,
+                        compression=args.compression, queue_size=args.queue)
+    c = result.counters
+    print(f"recorded {c['written']} messages ({c['episodes_ended']} episodes ended) into "
+          f"{result.path}; dropped {c['dropped']}, undecodable {c['undecodable']}, "
+          f"unknown topic {c['unknown_topic']}, write errors {c['write_errors']}",
+          flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
