@@ -1,1 +1,10 @@
-"""skyloop's bus package (see DESIGN.md)."""
+"""skyloop's bus package: the wire (see DESIGN.md). Imports nothing internal.
+
+- :mod:`bus.keys`: key expressions ``skyloop/<vehicle>/<topic>`` and the topic table.
+- :mod:`bus.messages`: the rosbags type store (ROS 2 Humble + ``skyloop_msgs`` from
+  ``bus/msg/*.msg``), the CDR codec, message constructors and extractors.
+- :mod:`bus.session`: session configuration, hub discovery, the Python router, and
+  :class:`bus.session.Bus` (typed publishers/subscribers, from :mod:`bus.node`).
+- :mod:`bus.log`: the MCAP episode log writer; :mod:`bus.log_reader`: the reader.
+- :mod:`bus.record`: the recorder (``skyloop record``).
+"""

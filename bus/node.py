@@ -18,12 +18,15 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from bus.keys import key, topic_info
 from bus.messages import decode, encode
+
+if TYPE_CHECKING:
+    from bus.session import SessionConfig
 
 log = logging.getLogger("skyloop.bus")
 
@@ -230,7 +233,7 @@ class Bus:
         self._closed = False
 
     @classmethod
-    def open(cls, cfg: Any = None) -> Bus:
+    def open(cls, cfg: SessionConfig | None = None) -> Bus:
         """Open a session with :func:`bus.session.open_session` (``cfg`` a
         ``SessionConfig``; ``None``: from the environment) and own it."""
         from bus.session import open_session

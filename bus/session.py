@@ -23,6 +23,11 @@ router), ``SKYLOOP_ZENOH_CONNECT`` and ``SKYLOOP_ZENOH_LISTEN`` (comma-separated
 endpoints), ``SKYLOOP_ZENOH_HUB`` (the hub endpoint, e.g. for a second stack on the
 same machine).
 
+Measured (two Python processes, hub scheme, Bus encode/decode included, other core
+busy): round trip p50 0.19 ms / p99 0.26 ms for a TwistStamped, 0.55 / 0.74 ms for a
+28,800-point scan (345 KB). Peers started before the hub exists, or left behind when it
+exits, keep retrying the hub endpoint in the background and join the next hub.
+
 Pitfalls (``shared/notes/zenoh-python.md``): never fork after opening a session (start
 children with ``spawn`` or as new programs); close explicitly, undeclaring first
 (:class:`Bus` does). :class:`Bus` and its parts live in :mod:`bus.node` and are
@@ -43,7 +48,7 @@ import zenoh
 from bus.node import Bus, Inbox, Publisher, Subscription
 
 __all__ = ["HUB", "LOOPBACK_ANY", "Bus", "Inbox", "Publisher", "SessionConfig", "Subscription",
-           "open_router", "open_session", "run_router"]
+           "open_router", "open_session", "router_main", "run_router"]
 
 log = logging.getLogger("skyloop.bus")
 
@@ -132,6 +137,25 @@ class SessionConfig:
         return conf
 
 
+_opened = 0  # sessions opened in this process (for the fork warning)
+
+
+def _warn_fork_child() -> None:
+    if _opened:
+        log.warning("process forked after opening %d Zenoh session(s): the child cannot use "
+                    "them; start children with 'spawn' or as new programs", _opened)
+
+
+os.register_at_fork(after_in_child=_warn_fork_child)
+
+
+def _open(conf: zenoh.Config) -> zenoh.Session:
+    global _opened
+    session = zenoh.open(conf)
+    _opened += 1
+    return session
+
+
 def open_session(cfg: SessionConfig | None = None) -> zenoh.Session:
     """Open a Zenoh session (``cfg`` default: :meth:`SessionConfig.from_env`).
 
@@ -141,14 +165,14 @@ def open_session(cfg: SessionConfig | None = None) -> zenoh.Session:
     """
     cfg = SessionConfig.from_env() if cfg is None else cfg
     if not cfg.uses_hub:
-        return zenoh.open(cfg.zenoh_config())
+        return _open(cfg.zenoh_config())
     try:
-        session = zenoh.open(cfg.zenoh_config(listen=[cfg.hub], connect=[]))
+        session = _open(cfg.zenoh_config(listen=[cfg.hub], connect=[]))
         log.debug("zenoh peer %s: hub on %s", session.info.zid(), cfg.hub)
         return session
     except zenoh.ZError as err:  # usually "Address already in use": someone is the hub
         log.debug("hub %s taken (%s); joining it", cfg.hub, err)
-    session = zenoh.open(cfg.zenoh_config(listen=[LOOPBACK_ANY], connect=[cfg.hub]))
+    session = _open(cfg.zenoh_config(listen=[LOOPBACK_ANY], connect=[cfg.hub]))
     log.debug("zenoh peer %s: joined hub %s", session.info.zid(), cfg.hub)
     return session
 
@@ -157,8 +181,7 @@ def open_router(listen: Sequence[str] | str = (HUB,),
                 cfg: SessionConfig | None = None) -> zenoh.Session:
     """Open a Python session in router mode listening on ``listen``."""
     base = cfg if cfg is not None else SessionConfig(mode="router")
-    return zenoh.open(replace(base, mode="router", listen=_endpoints(listen),
-                              connect=base.connect).zenoh_config())
+    return _open(replace(base, mode="router", listen=_endpoints(listen)).zenoh_config())
 
 
 def run_router(listen: Sequence[str] | str = (HUB,),
@@ -177,3 +200,23 @@ def run_router(listen: Sequence[str] | str = (HUB,),
         session.close()
 
 
+def router_main(argv: Sequence[str] | None = None) -> int:
+    """``skyloop router``: run the Python Zenoh router until SIGINT/SIGTERM."""
+    import argparse
+    import signal
+
+    parser = argparse.ArgumentParser(
+        prog="skyloop router",
+        description="Run a Zenoh router in this Python process (no zenohd needed); "
+                    "nodes reach it in client mode (SKYLOOP_ZENOH_MODE=client, "
+                    "SKYLOOP_ZENOH_CONNECT=<endpoint>).")
+    parser.add_argument("--listen", default=os.environ.get(ENV_LISTEN) or HUB,
+                        help=f"endpoints, comma-separated (default: $SKYLOOP_ZENOH_LISTEN "
+                             f"or {HUB}; use tcp/0.0.0.0:7447 to accept other hosts)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    run_router(_endpoints(args.listen), stop)
+    return 0

@@ -13,7 +13,14 @@ import pytest
 
 from bus import keys
 from bus import messages as m
-from bus.session import Bus, SessionConfig, open_router, open_session, run_router
+from bus.session import (
+    Bus,
+    SessionConfig,
+    open_router,
+    open_session,
+    router_main,
+    run_router,
+)
 
 
 def free_port() -> int:
@@ -133,6 +140,9 @@ def test_run_router_until_stopped():
     stop.set()
     thread.join(5.0)
     assert not thread.is_alive()
+    with pytest.raises(SystemExit) as exc:  # the future 'skyloop router' command
+        router_main(["--help"])
+    assert exc.value.code == 0
 
 
 def test_malformed_payload_is_counted_not_raised(hub_cfg, buses):
