@@ -1,0 +1,60 @@
+"""Log in-process env episodes in the stack's episode-log format (``bus.log``).
+
+The same topics and contract as a stack run (see :mod:`policy.offline`): episode
+START/END, one observation, one truth pose per step and one ``cmd_vel`` per action, so
+``skyloop train --from-logs`` learns from in-process runs and stack runs alike.
+Times are sim times (0.1 s a step) so the file is byte-identical for the same seed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from bus import messages as m
+from bus.keys import CMD_VEL, EPISODE, OBSERVATION, TRUTH
+from bus.log import EpisodeLogWriter
+from policy.rollout import Controller
+
+NS = 1_000_000_000
+
+
+def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_dir: Path,
+                     vehicle: str = "uav1", run_name: str = "env") -> Path:
+    """Fly ``episodes`` episodes (seeds ``seed + i``) and write them to one MCAP log."""
+    base = env.unwrapped
+    writer = EpisodeLogWriter(out_dir, run_name=run_name)
+    clock = 0  # ns, monotonic across episodes
+
+    def put(topic: str, msg, t_s: float) -> None:
+        writer.write_msg(vehicle, topic, msg, log_time_ns=clock + int(round(t_s * NS)))
+
+    for i in range(episodes):
+        state, info = env.reset(seed=seed + i)
+        scenario = base.config.episode.scenario
+        put(EPISODE, m.episode_start(i, seed + i, base.start, base.goal, 0.0, scenario), 0.0)
+        k, t = 0, 0.0
+
+        def snapshot(episode: int, step: int, t_s: float, latest: np.ndarray) -> None:
+            truth = base.vehicle.truth
+            put(OBSERVATION, m.observation(latest, t_s, episode=episode, step=step), t_s)
+            put(TRUTH, m.odometry(truth.position, truth.velocity, (0.0, 0.0, 0.0, 1.0), t_s),
+                t_s)
+
+        snapshot(i, 0, 0.0, state[-1])
+        while True:
+            action = np.clip(np.asarray(controller(state), np.float32), -2.0, 2.0)
+            put(CMD_VEL, m.twist_stamped(*(float(a) for a in action), t, frame_id="base_link"),
+                t)
+            state, _, terminated, truncated, info = env.step(action)
+            k, t = k + 1, t + 0.1
+            snapshot(i, k, t, state[-1])
+            if terminated or truncated:
+                break
+        outcome = ("success" if info["goal_reached"] else
+                   "collision" if info["collision"] else "timeout")
+        put(EPISODE, m.episode_end(i, outcome, k, t, seed=seed + i, scenario=scenario), t)
+        clock += int(round((t + 1.0) * NS))
+    writer.close()
+    return Path(writer.path)
