@@ -117,10 +117,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", help="run directories")
     p.add_argument("--out", default="out/curves.png")
     p.set_defaults(func=_cmd_plot)
+
+    from skyloop.stack_cli import add_stack_commands
+
+    add_stack_commands(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in ("record", "router"):  # their own parsers take every flag
+        from skyloop.stack_cli import passthrough
+
+        return passthrough(argv[0], argv[1:])
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)

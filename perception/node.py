@@ -1,0 +1,100 @@
+"""The perception node (``skyloop perception``): scan + odometry + goal -> observation.
+
+Inputs (one vehicle): the episode START event (the goal), the step clock (episode and
+step of a stamp), the estimated odometry and the LiDAR scan. Messages of one step share
+one header stamp (the simulator's stack time); the node joins them by stamp, so their
+arrival order does not matter, and publishes ``observation`` (35 values, one frame,
+with the episode and step) through :func:`perception.observation.observation_from_scan`,
+the same function the in-process env calls. Zenoh callbacks only enqueue; one worker
+thread does the work.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+from typing import Any
+
+import numpy as np
+
+from bus import keys
+from bus import messages as m
+from bus.node import Bus
+from perception.icosahedron import TruncatedIcosahedron
+from perception.observation import ObservationConfig, observation_from_scan
+
+log = logging.getLogger("skyloop.perception")
+_MAX_PENDING = 64  # stamps waiting for their other parts
+
+
+def yaw_from_quat(x: float, y: float, z: float, w: float) -> float:
+    """ENU yaw (CCW from east) of an (x, y, z, w) quaternion (ZYX)."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+class PerceptionNode:
+    """Joins clock/odometry/scan by stamp and publishes observations."""
+
+    def __init__(self, bus: Bus, vehicle: str = "uav1",
+                 config: ObservationConfig | None = None) -> None:
+        self.bus, self.vehicle = bus, vehicle
+        self.config = config or ObservationConfig()
+        self.ico = TruncatedIcosahedron(self.config.radius)
+        self.goals: dict[int, np.ndarray] = {}
+        self.pending: dict[int, dict[str, Any]] = {}
+        self.published = 0
+        self._q: queue.Queue[tuple[str, Any] | None] = queue.Queue()
+        self.pub = bus.publisher(keys.OBSERVATION, vehicle)
+        for topic in (keys.EPISODE, keys.CLOCK, keys.ODOM, keys.LIDAR_POINTS):
+            bus.subscribe(topic, vehicle, lambda msg, t=topic: self._q.put((t, msg)))
+        self._thread = threading.Thread(target=self._run, name="perception", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while (item := self._q.get()) is not None:
+            try:
+                self.handle(*item)
+            except Exception:  # noqa: BLE001 - one bad step must not stop the node
+                log.exception("perception failed on %s", item[0])
+
+    def handle(self, topic: str, msg: Any) -> None:
+        """Take one message; publish an observation once a stamp is complete."""
+        if topic == keys.EPISODE:
+            if msg.event == m.START:
+                self.goals[int(msg.episode)] = np.array([msg.goal.x, msg.goal.y, msg.goal.z])
+                for old in [e for e in self.goals if e < msg.episode - 4]:
+                    del self.goals[old]
+            self._flush()
+            return
+        stamp = m.nanoseconds(msg.header.stamp) if topic != keys.CLOCK \
+            else m.nanoseconds(msg.sim_time)
+        self.pending.setdefault(stamp, {})[topic] = msg
+        while len(self.pending) > _MAX_PENDING:
+            del self.pending[min(self.pending)]
+        self._flush()
+
+    def _flush(self) -> None:
+        for stamp in sorted(self.pending):
+            parts = self.pending[stamp]
+            if len(parts) < 3:
+                continue
+            clock = parts[keys.CLOCK]
+            goal = self.goals.get(int(clock.episode))
+            if goal is None:
+                continue
+            del self.pending[stamp]
+            self._observe(stamp, clock, parts[keys.ODOM], parts[keys.LIDAR_POINTS], goal)
+
+    def _observe(self, stamp: int, clock: Any, odom: Any, scan: Any, goal: np.ndarray) -> None:
+        position, velocity, q = m.odometry_values(odom)
+        points = m.points_from_pointcloud(scan)
+        obs, _, _, _ = observation_from_scan(points, self.ico, position, yaw_from_quat(*q),
+                                             velocity, goal, self.config)
+        self.pub.put(m.observation(obs, stamp / 1e9, int(clock.episode), int(clock.step)))
+        self.published += 1
+
+    def close(self) -> None:
+        self._q.put(None)
+        self._thread.join(timeout=5.0)

@@ -1,0 +1,122 @@
+"""The policy node (``skyloop policy``): observations -> 3-frame state -> actor -> MAVLink.
+
+It sits where a MAVSDK offboard client sits in PX4 SITL: an
+:class:`~mavlink_bridge.offboard_client.OffboardClient` listening on UDP 14540. At
+startup it flies the MAVSDK offboard recipe: wait for the vehicle's heartbeat, set a
+zero setpoint (streamed at 20 Hz), arm, take off, start offboard (setpoints stream
+first, then the mode switch; the heartbeat must show OFFBOARD). Then it prints
+``READY_LINE`` and flies.
+
+Per observation (``skyloop/<vehicle>/observation``, 35 values with episode and step):
+the :class:`~perception.observation.FrameStacker` is reset at step 0 and whenever the
+episode changes (never carried across episodes), the actor maps the stacked state to
+``(vx, vy, vz, yaw_rate)`` body-horizontal, clipped to [-2, 2] and rounded to float32
+(the env does the same), sent as SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_NED with
+the velocity + yaw-rate type mask.
+
+**Step matching.** Once in OFFBOARD the client no longer re-sends setpoints on a timer
+(each observation, 10 Hz of stack time, gives one setpoint: more than PX4's 2 Hz), and a
+setpoint's ``time_boot_ms`` is the stack time (ms) of the observation it answers; the
+vehicle's bridge uses it to tell the simulator which step the command is for.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from bus import keys
+from bus import messages as m
+from bus.node import Bus
+from mavlink_bridge.offboard_client import OffboardClient, OffboardClientConfig
+from perception.observation import FrameStacker
+
+log = logging.getLogger("skyloop.policy")
+READY_LINE = "SKYLOOP-POLICY-READY"
+MAX_ACTION = 2.0
+Controller = Callable[[np.ndarray], np.ndarray]
+
+
+class _StampClock:
+    """The client's clock: monotonic wall time, or (while sending a step's setpoint)
+    the value that makes ``time_boot_ms`` equal that step's stack time in ms."""
+
+    def __init__(self) -> None:
+        self.override: float | None = None
+
+    def __call__(self) -> float:
+        return time.monotonic() if self.override is None else self.override
+
+
+class PolicyNode:
+    """Flies ``controller`` through MAVLink (see the module docstring)."""
+
+    def __init__(self, bus: Bus, controller: Controller, vehicle: str = "uav1",
+                 client_config: OffboardClientConfig | None = None, frames: int = 3,
+                 dim: int = 35) -> None:
+        self.bus, self.controller, self.vehicle = bus, controller, vehicle
+        self.stacker = FrameStacker(frames, dim)
+        self.clock = _StampClock()
+        self.client = OffboardClient(client_config, clock=self.clock)
+        self.inbox = bus.inbox(keys.OBSERVATION, vehicle, maxsize=64)
+        self.episode: int | None = None
+        self.sent = 0
+        self.bad_actions = 0
+
+    def start(self, takeoff_altitude: float | None = None, timeout: float = 30.0) -> None:
+        """Connect, stream a zero setpoint, arm, take off, start offboard."""
+        c = self.client
+        c.wait_heartbeat(timeout)
+        c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
+        c.arm()
+        c.takeoff(takeoff_altitude)
+        c.start_offboard()
+        c.config.setpoint_period = math.inf  # from now on: one setpoint per observation
+        c._next_setpoint = math.inf  # noqa: SLF001 - stop the timer re-sends now
+        log.info("offboard: flying %s", getattr(self.controller, "name", "controller"))
+
+    def act(self, msg: object) -> np.ndarray | None:
+        """One observation -> the float32 action sent (None if the actor gave NaN/inf)."""
+        values = m.observation_values(msg)[-1]
+        episode, step = int(msg.episode), int(msg.step)
+        if step == 0 or episode != self.episode:
+            self.stacker.reset()
+            self.episode = episode
+        state = self.stacker.push(values)
+        action = np.asarray(self.controller(state), dtype=np.float64).reshape(-1)
+        if action.shape != (4,) or not np.all(np.isfinite(action)):
+            self.bad_actions += 1
+            log.warning("actor gave %s at episode %d step %d; nothing sent", action, episode,
+                        step)
+            return None
+        action = np.clip(action, -MAX_ACTION, MAX_ACTION).astype(np.float32)
+        stamp_s = m.seconds(msg.header.stamp)
+        # time_boot_ms = int((clock - t0) * 1000): aim at the middle of the millisecond.
+        self.clock.override = self.client._t0 + stamp_s + 0.0005  # noqa: SLF001
+        try:
+            self.client.set_velocity_body(*(float(a) for a in action))
+        finally:
+            self.clock.override = None
+        self.sent += 1
+        return action
+
+    def spin_once(self, timeout: float = 0.05) -> None:
+        """Handle one observation (waiting up to ``timeout``), then service the link."""
+        try:
+            msg = self.inbox.get(timeout=timeout)
+        except TimeoutError:
+            msg = None
+        if msg is not None:
+            self.act(msg)
+        self.client.poll()
+
+    def run(self, stop: Callable[[], bool]) -> None:
+        while not stop():
+            self.spin_once()
+
+    def close(self) -> None:
+        self.client.close()

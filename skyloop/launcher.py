@@ -1,0 +1,272 @@
+"""``skyloop up``: the whole process graph as child programs, one summary at the end.
+
+Children are new programs (``python -m skyloop <node>``, never a fork of a process with
+a Zenoh session), in their own session so a terminal Ctrl-C reaches only the launcher,
+and with a parent-death signal so none outlives it. Default wiring: loopback peers
+joined through a hub endpoint on a free port (``SKYLOOP_ZENOH_HUB``, so two stacks on
+one machine do not meet); ``--router`` starts ``skyloop router`` and puts every node in
+client mode.
+
+Start order: [router], [record, until it subscribes], perception, bridge, policy (until
+it reports OFFBOARD: arm, takeoff and offboard done the MAVSDK way), then sim, which
+runs the episodes. In lockstep nothing moves until the sim starts, so every episode is
+the same as in the in-process env. When the sim finishes, the others get SIGTERM (the
+recorder closes its MCAP), then SIGKILL after the grace period. If any child dies first,
+or on Ctrl-C, every child is stopped within 5 s and the launcher exits non-zero, naming
+the node that died and its last log line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sitl.node import EPISODE_LINE, SUMMARY_LINE
+
+READY_LINE = "SKYLOOP-POLICY-READY"  # policy.node.READY_LINE (not imported: no torch here)
+GRACE_S = 3.0
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _pdeathsig() -> None:  # runs in the child between fork and exec: no Zenoh there
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except Exception:  # noqa: BLE001 - not Linux: children may outlive a killed launcher
+        pass
+
+
+@dataclass
+class Child:
+    """One child program and what it printed."""
+
+    name: str
+    proc: subprocess.Popen
+    lines: collections.deque = field(default_factory=lambda: collections.deque(maxlen=50))
+
+    @property
+    def last_line(self) -> str:
+        for line in reversed(self.lines):
+            if line.strip():
+                return line.strip()
+        return "(no output)"
+
+
+class Graph:
+    """The running children; reader threads route their output."""
+
+    def __init__(self, env: dict[str, str], verbose: bool = False) -> None:
+        self.env, self.verbose = env, verbose
+        self.children: list[Child] = []
+        self.episodes: list[dict] = []
+        self.summary: dict | None = None
+        self.log_path: str | None = None
+        self.ready = {"policy": threading.Event(), "record": threading.Event()}
+        self._lock = threading.Lock()
+
+    def start(self, name: str, args: list[str]) -> Child:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "skyloop", *args], env=self.env, stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT, text=True, bufsize=1, start_new_session=True,
+            preexec_fn=_pdeathsig)
+        child = Child(name, proc)
+        self.children.append(child)
+        threading.Thread(target=self._read, args=(child,), daemon=True).start()
+        print(f"started {name} (pid {proc.pid})", flush=True)
+        return child
+
+    def _read(self, child: Child) -> None:
+        assert child.proc.stdout is not None
+        for raw in child.proc.stdout:
+            line = raw.rstrip("\n")
+            child.lines.append(line)
+            if self.verbose:
+                print(f"[{child.name}] {line}", file=sys.stderr, flush=True)
+            if line.startswith(EPISODE_LINE):
+                r = json.loads(line[len(EPISODE_LINE):])
+                with self._lock:
+                    self.episodes.append(r)
+                print(f"episode {r['episode']} (seed {r['seed']}): {r['outcome']} in "
+                      f"{r['steps']} steps, path {r['path_length']:.1f} m", flush=True)
+            elif line.startswith(SUMMARY_LINE):
+                self.summary = json.loads(line[len(SUMMARY_LINE):])
+            elif line.startswith(READY_LINE):
+                self.ready["policy"].set()
+            elif child.name == "record" and "recording" in line:
+                self.ready["record"].set()
+            elif child.name == "record" and line.startswith("recorded "):
+                self.log_path = line.rsplit(" into ", 1)[-1].split(";")[0]
+
+    def dead(self, exclude: str | None = None) -> Child | None:
+        """The first child (other than ``exclude``) that has exited, if any."""
+        for c in self.children:
+            if c.name != exclude and c.proc.poll() is not None:
+                return c
+        return None
+
+    def wait_for(self, event: threading.Event, what: str, timeout: float) -> Child | None:
+        """Wait for ``event`` while watching the children; a dead child is returned."""
+        deadline = time.monotonic() + timeout
+        while not event.wait(0.05):
+            if (c := self.dead()) is not None:
+                return c
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{what} not ready within {timeout:.0f} s")
+        return None
+
+    def stop(self, grace: float = GRACE_S) -> None:
+        """SIGTERM every live child, SIGKILL what is left after ``grace`` seconds."""
+        for c in reversed(self.children):
+            if c.proc.poll() is None:
+                try:
+                    os.killpg(c.proc.pid, signal.SIGTERM)
+                except ProcessLookupError:
+                    pass
+        deadline = time.monotonic() + grace
+        for c in self.children:
+            try:
+                c.proc.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(c.proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                c.proc.wait(1.0)
+
+
+def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, list[str]]:
+    clock = ["--realtime"] if args.realtime else ["--lockstep"]
+    v = ["--vehicle", args.vehicle]
+    return {
+        "perception": ["perception", *v],
+        "bridge": ["bridge", *v, *clock, "--api-port", str(ports["api"]),
+                   "--api-local-port", str(ports["api_local"]),
+                   "--gcs-port", str(ports["gcs"]), "--gcs-local-port", str(ports["gcs_local"])],
+        "policy": ["policy", *v, "--api-port", str(ports["api"]),
+                   *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
+        "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
+                str(args.episodes), "--seed", str(args.seed)],
+    }
+
+
+def run_up(args: argparse.Namespace) -> int:
+    """Run the graph (see the module docstring); returns the exit code."""
+    if args.policy == "none" and not args.realtime:
+        print("--policy none: nothing answers the setpoints, running --realtime")
+        args.realtime = True
+    env = dict(os.environ)
+    env.setdefault("PYTHONUNBUFFERED", "1")
+    env.setdefault("MAVLINK20", "1")
+    endpoint = args.hub or f"tcp/127.0.0.1:{free_port()}"
+    ports = {"api": args.api_port, "api_local": args.api_local_port, "gcs": args.gcs_port,
+             "gcs_local": args.gcs_local_port}
+    graph = Graph(env, args.verbose)
+    nodes = _node_args(args, ports)
+    t0 = time.monotonic()
+    try:
+        if args.router:
+            env.update(SKYLOOP_ZENOH_MODE="client", SKYLOOP_ZENOH_CONNECT=endpoint)
+            env.pop("SKYLOOP_ZENOH_LISTEN", None)
+            graph.start("router", ["router", "--listen", endpoint])
+        else:
+            env.update(SKYLOOP_ZENOH_MODE="peer", SKYLOOP_ZENOH_HUB=endpoint)
+            env.pop("SKYLOOP_ZENOH_CONNECT", None)
+        if args.log_dir:
+            graph.start("record", ["record", "--out", str(args.log_dir)])
+            if (c := graph.wait_for(graph.ready["record"], "record", 60.0)) is not None:
+                return _died(graph, c)
+        for name in ("perception", "bridge"):
+            graph.start(name, nodes[name])
+        if args.policy != "none":
+            graph.start("policy", nodes["policy"])
+            if (c := graph.wait_for(graph.ready["policy"], "policy", 120.0)) is not None:
+                return _died(graph, c)
+        sim = graph.start("sim", nodes["sim"])
+        while sim.proc.poll() is None:
+            if (c := graph.dead(exclude="sim")) is not None:
+                return _died(graph, c)
+            time.sleep(0.05)
+        if sim.proc.returncode != 0 or graph.summary is None:
+            return _died(graph, sim)
+        graph.stop()
+    except KeyboardInterrupt:
+        print("interrupted: stopping every node", file=sys.stderr, flush=True)
+        graph.stop()
+        return 130
+    except TimeoutError as err:
+        graph.stop()
+        print(f"skyloop up: {err}", file=sys.stderr, flush=True)
+        return 1
+    summary = _summary(graph, args, time.monotonic() - t0)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+    return 0
+
+
+def _died(graph: Graph, child: Child) -> int:
+    child.proc.poll()
+    code = child.proc.returncode
+    graph.stop()
+    print(f"skyloop up: node '{child.name}' exited (code {code}); its last log line: "
+          f"{child.last_line}", file=sys.stderr, flush=True)
+    return 1
+
+
+def _summary(graph: Graph, args: argparse.Namespace, wall_s: float) -> dict[str, Any]:
+    s = dict(graph.summary or {})
+    n = s.get("episodes", 0)
+    s.update(policy=args.policy or "shipped", router=bool(args.router), log=graph.log_path,
+             total_wall_s=wall_s)
+    rates = ", ".join(f"{o} {s.get(o, 0)}/{n}" for o in ("success", "collision", "timeout"))
+    lat = (f", latency p50 {s['latency_ms_p50']:.2f} ms p99 {s['latency_ms_p99']:.2f} ms"
+           if "latency_ms_p50" in s else "")
+    print(f"summary: {n} episodes on {s.get('scenario')} ({s.get('mode')}): {rates}; "
+          f"mean steps {s.get('mean_steps', 0):.1f}; {s.get('steps_per_s', 0):.0f} control "
+          f"steps/s{lat}", flush=True)
+    if graph.log_path:
+        print(f"log: {graph.log_path}", flush=True)
+    return s
+
+
+def add_up_parser(sub: Any, func: Any) -> None:
+    p = sub.add_parser("up", help="run the whole stack (sim, perception, policy, bridge, "
+                                  "[record], [router]) for N episodes")
+    p.add_argument("--scenario", default="valley")
+    p.add_argument("--episodes", type=int, default=5)
+    p.add_argument("--seed", type=int, default=1000, help="episode i uses seed + i")
+    p.add_argument("--policy", default="shipped",
+                   help="actor file, 'scripted', 'none' or 'shipped' (default)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--lockstep", dest="realtime", action="store_false", default=False)
+    g.add_argument("--realtime", dest="realtime", action="store_true")
+    p.add_argument("--router", action="store_true",
+                   help="start a Python Zenoh router; every node in client mode")
+    p.add_argument("--hub", default=None,
+                   help="Zenoh endpoint of the hub/router (default: a free loopback port)")
+    p.add_argument("--log-dir", default=None, help="record the run (MCAP) under this dir")
+    p.add_argument("--json", default=None, help="write the summary here")
+    p.add_argument("--vehicle", default="uav1")
+    p.add_argument("--api-port", type=int, default=14540)
+    p.add_argument("--api-local-port", type=int, default=14580)
+    p.add_argument("--gcs-port", type=int, default=14550)
+    p.add_argument("--gcs-local-port", type=int, default=18570)
+    p.add_argument("-v", "--verbose", action="store_true", help="echo every node's output")
+    p.set_defaults(func=func)

@@ -1,0 +1,233 @@
+"""The stack's subcommands: ``sim``, ``perception``, ``policy``, ``bridge``, ``record``,
+``router`` and ``up``. Each node is a thin binding of a core to the bus (see the
+``node.py`` of its package); this module only parses flags, opens the Zenoh session
+(``SKYLOOP_ZENOH_*`` environment, overridden by ``--mode/--connect/--listen``), handles
+SIGINT/SIGTERM and closes things in order."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from dataclasses import replace
+from typing import Any
+
+MAVLINK_DEFAULTS = {"api_port": 14540, "api_local_port": 14580, "gcs_port": 14550,
+                    "gcs_local_port": 18570}
+
+
+def _zenoh_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--vehicle", default="uav1", help="vehicle name (default: uav1)")
+    p.add_argument("--mode", choices=("peer", "client"), default=None,
+                   help="Zenoh mode (default: $SKYLOOP_ZENOH_MODE or peer)")
+    p.add_argument("--connect", default=None, help="Zenoh endpoints, comma-separated")
+    p.add_argument("--listen", default=None, help="Zenoh endpoints to listen on")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+
+
+def _clock_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--lockstep", dest="realtime", action="store_false", default=False,
+                   help="advance only when the step's command arrived (default)")
+    g.add_argument("--realtime", dest="realtime", action="store_true",
+                   help="pace by the wall clock at 10 Hz")
+
+
+def _open_bus(args: argparse.Namespace) -> Any:
+    from bus.node import Bus
+    from bus.session import SessionConfig
+
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s",
+                        stream=sys.stderr)
+    cfg = SessionConfig.from_env()
+    overrides = {k: v for k, v in (("mode", args.mode), ("connect", args.connect),
+                                   ("listen", args.listen)) if v is not None}
+    return Bus.open(replace(cfg, **overrides) if overrides else cfg)
+
+
+def _stop_event() -> threading.Event:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop
+
+
+def _raise_on_term() -> None:
+    def handler(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, handler)
+
+
+# ----------------------------------------------------------------------------- nodes
+def cmd_sim(args: argparse.Namespace) -> int:
+    from sitl.node import SimNode, SimNodeConfig
+
+    _raise_on_term()
+    bus = _open_bus(args)
+    try:
+        node = SimNode(bus, SimNodeConfig(scenario=args.scenario, episodes=args.episodes,
+                                          seed=args.seed, vehicle=args.vehicle,
+                                          realtime=args.realtime))
+        node.run(lambda line: print(line, flush=True))
+    finally:
+        bus.close()
+    return 0
+
+
+def cmd_perception(args: argparse.Namespace) -> int:
+    from perception.node import PerceptionNode
+
+    stop = _stop_event()
+    bus = _open_bus(args)
+    node = PerceptionNode(bus, args.vehicle)
+    logging.getLogger("skyloop.perception").info("perception up for %s", args.vehicle)
+    try:
+        while not stop.wait(0.2):
+            pass
+    finally:
+        bus.close()
+        node.close()
+    return 0
+
+
+def cmd_policy(args: argparse.Namespace) -> int:
+    from mavlink_bridge.offboard_client import OffboardClientConfig
+    from policy.node import READY_LINE, PolicyNode
+
+    if args.policy == "none":
+        print("skyloop policy: --policy none: nothing to fly", file=sys.stderr)
+        return 0
+    import torch
+
+    from policy.evaluate import make_controller
+
+    torch.set_num_threads(1)
+    controller = make_controller(None if args.policy == "shipped" else args.policy)
+    stop = _stop_event()
+    bus = _open_bus(args)
+    node = PolicyNode(bus, controller, args.vehicle,
+                      OffboardClientConfig(listen_host=args.api_host,
+                                           listen_port=args.api_port))
+    try:
+        node.start(args.takeoff_altitude)
+        print(READY_LINE, flush=True)
+        node.run(stop.is_set)
+    finally:
+        bus.close()
+        node.close()
+    return 0
+
+
+def cmd_bridge(args: argparse.Namespace) -> int:
+    from mavlink_bridge.node import BridgeNode
+    from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
+    from sitl.commander import Commander, VehicleSample
+
+    worlds: dict[str, Any] = {}
+
+    def ground(scenario: str, x: float, y: float) -> float:
+        if scenario not in worlds:
+            from sitl.world import World, load_scenario
+
+            worlds[scenario] = World(load_scenario(scenario))
+        return float(worlds[scenario].terrain_height(x, y))
+
+    link = VehicleLinkConfig(
+        api=LinkConfig(args.api_local_port, args.api_port, args.bind, args.api_host),
+        gcs=None if args.no_gcs else LinkConfig(args.gcs_local_port, args.gcs_port,
+                                                args.bind, args.gcs_host))
+    stop = _stop_event()
+    bus = _open_bus(args)
+    node = BridgeNode(bus, Commander(), VehicleSample, args.vehicle, link,
+                      lockstep=not args.realtime, ground=ground)
+    logging.getLogger("skyloop.bridge").info(
+        "bridge up: api %s -> %s:%d, gcs %s", node.link.address("api"), args.api_host,
+        args.api_port, "off" if args.no_gcs else f"-> {args.gcs_host}:{args.gcs_port}")
+    try:
+        node.run(stop.is_set)
+    finally:
+        bus.close()
+        node.close()
+    return 0
+
+
+def passthrough(name: str, argv: list[str]) -> int:
+    """``record`` and ``router`` parse their own flags (``bus.record``, ``bus.session``)."""
+    if name == "record":
+        from bus.record import main
+
+        return main(argv)
+    from bus.session import router_main
+
+    return router_main(argv)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    return passthrough("record", args.rest)
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    return passthrough("router", args.rest)
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from skyloop.launcher import run_up
+
+    return run_up(args)
+
+
+# ----------------------------------------------------------------------------- parsers
+def add_stack_commands(sub: Any) -> None:
+    """Register the stack's subcommands on ``sub`` (argparse subparsers)."""
+    p = sub.add_parser("sim", help="simulator node: seeded episodes on the bus")
+    _zenoh_args(p)
+    _clock_args(p)
+    p.add_argument("--scenario", default="valley")
+    p.add_argument("--episodes", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")
+    p.set_defaults(func=cmd_sim)
+
+    p = sub.add_parser("perception", help="perception node: scan + odom + goal -> observation")
+    _zenoh_args(p)
+    p.set_defaults(func=cmd_perception)
+
+    p = sub.add_parser("policy", help="policy node: observation -> actor -> MAVLink setpoints")
+    _zenoh_args(p)
+    p.add_argument("--policy", default=None,
+                   help="actor file, 'scripted', 'none' or 'shipped' (default)")
+    p.add_argument("--api-host", default="127.0.0.1", help="address to listen on")
+    p.add_argument("--api-port", type=int, default=MAVLINK_DEFAULTS["api_port"],
+                   help="UDP port to listen on (PX4 SITL API link: 14540)")
+    p.add_argument("--takeoff-altitude", type=float, default=None)
+    p.set_defaults(func=cmd_policy)
+
+    p = sub.add_parser("bridge", help="vehicle MAVLink endpoint + commander on the bus")
+    _zenoh_args(p)
+    _clock_args(p)
+    p.add_argument("--bind", default="127.0.0.1", help="local address of both links")
+    p.add_argument("--api-host", default="127.0.0.1", help="where the offboard client is")
+    p.add_argument("--api-port", type=int, default=MAVLINK_DEFAULTS["api_port"])
+    p.add_argument("--api-local-port", type=int, default=MAVLINK_DEFAULTS["api_local_port"])
+    p.add_argument("--gcs-host", default="127.0.0.1", help="where the ground station is")
+    p.add_argument("--gcs-port", type=int, default=MAVLINK_DEFAULTS["gcs_port"])
+    p.add_argument("--gcs-local-port", type=int, default=MAVLINK_DEFAULTS["gcs_local_port"])
+    p.add_argument("--no-gcs", action="store_true", help="no ground-station link")
+    p.set_defaults(func=cmd_bridge)
+
+    p = sub.add_parser("record", help="record skyloop/** into MCAP (see 'record --help')",
+                       add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("router", help="Python Zenoh router (see 'router --help')",
+                       add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_router)
+
+    from skyloop.launcher import add_up_parser
+
+    add_up_parser(sub, cmd_up)
