@@ -154,7 +154,9 @@ class BridgeNode:
         self.link.update_telemetry(VehicleTelemetry(now, (x, y, z), (vx, vy, vz),
                                                     (0.0, 0.0, yaw)))
         if self.lockstep and str(self.commander.state) == "OFFBOARD":
-            self._waiting, self._matched = stamp, False
+            # the setpoint may already be here (read while this odometry was queued)
+            self._waiting = stamp
+            self._matched = self._sp is not None and self._sp[1] * 1_000_000 == stamp
             while not (self._matched or stop()) and str(self.commander.state) == "OFFBOARD":
                 self._service(0.05)
             self._waiting = None

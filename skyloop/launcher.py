@@ -32,9 +32,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sitl.node import EPISODE_LINE, SUMMARY_LINE
-
-READY_LINE = "SKYLOOP-POLICY-READY"  # policy.node.READY_LINE (not imported: no torch here)
+# The lines the nodes print (sitl.node / policy.node; not imported: --help stays light).
+EPISODE_LINE = "SKYLOOP-EPISODE "
+SUMMARY_LINE = "SKYLOOP-SUMMARY "
+READY_LINE = "SKYLOOP-POLICY-READY"
 GRACE_S = 3.0
 
 

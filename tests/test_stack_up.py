@@ -1,0 +1,165 @@
+"""The whole stack through ``skyloop up`` over real loopback Zenoh and UDP MAVLink.
+
+One lockstep configuration (the shipped policy, 2 episodes) runs twice: as loopback
+peers and through ``--router`` (a Python router, every node a client), each recording
+an MCAP log. The tests check: the summary equals the in-process env's on the same
+seeds; every action (float32) and every true position equals the env's; both logs hold
+2 complete episodes; both runs put byte-identical payloads on the wire (per topic, in
+order). A separate run checks that killing a node stops the launcher, naming it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bus import messages as m
+from bus.log_reader import read_episodes
+from skyloop import launcher
+
+SEED, EPISODES = 1000, 2
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def up_args(*extra: str) -> list[str]:
+    udp = [free_port(socket.SOCK_DGRAM) for _ in range(4)]
+    return [sys.executable, "-m", "skyloop", "up", "--hub", f"tcp/127.0.0.1:{free_port()}",
+            "--api-port", str(udp[0]), "--api-local-port", str(udp[1]),
+            "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3]), *extra]
+
+
+def run_up(tmp: Path, name: str, *extra: str) -> tuple[dict, Path, str]:
+    out = tmp / name
+    cmd = up_args("--episodes", str(EPISODES), "--seed", str(SEED), "--log-dir", str(out),
+                  "--json", str(out / "summary.json"), *extra)
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    mcaps = list(out.glob("*/*.mcap"))
+    assert len(mcaps) == 1, proc.stdout
+    return json.loads((out / "summary.json").read_text()), mcaps[0], proc.stdout
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("stack")
+    return {"peer": run_up(tmp, "peer"), "router": run_up(tmp, "router", "--router")}
+
+
+@pytest.fixture(scope="module")
+def env_episodes():
+    """The same episodes in the in-process env: actions, true positions, outcomes."""
+    import torch
+
+    from policy.env import UavNavEnv
+    from policy.evaluate import make_controller
+
+    torch.set_num_threads(1)
+    controller = make_controller(None)
+    env = UavNavEnv(scenario="valley")
+    episodes = []
+    for i in range(EPISODES):
+        state, _ = env.reset(seed=SEED + i)
+        actions, done, info = [], False, {}
+        while not done:
+            a = np.clip(np.asarray(controller(state), np.float64), -2, 2).astype(np.float32)
+            actions.append(a)
+            state, _, term, trunc, info = env.step(a)
+            done = term or trunc
+        outcome = "collision" if info["collision"] else \
+            "success" if info["goal_reached"] else "timeout"
+        episodes.append({"actions": np.array(actions), "path": np.array(env.path),
+                         "outcome": outcome, "steps": env.steps})
+    return episodes
+
+
+@pytest.mark.slow
+def test_summary_matches_env(runs, env_episodes):
+    for summary, _, stdout in runs.values():
+        assert summary["episodes"] == EPISODES
+        for o in ("success", "collision", "timeout"):
+            assert summary[o] == sum(e["outcome"] == o for e in env_episodes)
+        assert summary["mean_steps"] == np.mean([e["steps"] for e in env_episodes])
+        assert summary["steps_per_s"] > 0
+        assert "summary:" in stdout and "log:" in stdout
+
+
+@pytest.mark.slow
+def test_parity_actions_and_trajectory(runs, env_episodes):
+    _, mcap, _ = runs["peer"]
+    episodes, report = read_episodes(mcap)
+    assert len(episodes) == EPISODES and all(e.complete for e in episodes), report.summary()
+    for ep, ref in zip(episodes, env_episodes, strict=True):
+        assert ep.seed == SEED + ep.index and ep.steps == ref["steps"]
+        assert ep.outcome == ref["outcome"]
+        cmds = [m.twist_values(x.decode()) for x in ep.topic("cmd_vel")]
+        assert len(cmds) == ref["steps"]
+        np.testing.assert_array_equal(np.array(cmds, np.float32), ref["actions"])
+        truth = np.array([m.odometry_values(x.decode())[0] for x in ep.topic("truth")])
+        np.testing.assert_allclose(truth, ref["path"][: len(truth)], rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_router_run_is_byte_identical(runs):
+    def payloads(mcap: Path) -> dict[str, list[bytes]]:
+        out: dict[str, list[bytes]] = {}
+        for ep in read_episodes(mcap)[0]:
+            for msg in ep.messages:
+                out.setdefault(msg.topic, []).append(msg.data)
+        return out
+
+    a, b = payloads(runs["peer"][1]), payloads(runs["router"][1])
+    assert set(a) >= {"/skyloop/uav1/lidar/points", "/skyloop/uav1/cmd_vel",
+                      "/skyloop/uav1/observation", "/skyloop/uav1/truth"}
+    assert a == b
+    assert runs["router"][0]["router"] is True
+
+
+def test_child_death_stops_the_graph():
+    proc = subprocess.Popen(up_args("--episodes", "50", "--policy", "scripted"), cwd=ROOT,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    pids: dict[str, int] = {}
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if line.startswith("started "):
+                name, pid = line.split()[1], int(line.split("pid ")[1].rstrip(")\n"))
+                pids[name] = pid
+            if line.startswith("episode "):  # the graph is flying
+                break
+        assert "perception" in pids, pids
+        os.kill(pids["perception"], signal.SIGKILL)
+        t0 = time.monotonic()
+        rest = proc.communicate(timeout=10)[0]
+        assert time.monotonic() - t0 < 5.0
+        assert proc.returncode != 0
+        assert "'perception'" in rest
+        for name, pid in pids.items():  # every child is gone
+            with pytest.raises(ProcessLookupError):
+                os.kill(pid, 0)
+            del name
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_launcher_lines_match_nodes():
+    from policy.node import READY_LINE
+    from sitl.node import EPISODE_LINE, SUMMARY_LINE
+
+    assert (launcher.EPISODE_LINE, launcher.SUMMARY_LINE, launcher.READY_LINE) == \
+        (EPISODE_LINE, SUMMARY_LINE, READY_LINE)
