@@ -17,8 +17,9 @@ $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install -q -e ".[test]"
 	touch $(STAMP)
 
+# The process graph (sim, perception, policy, bridge, record) in lockstep, shipped policy.
 demo: $(STAMP)
-	$(PY) -m skyloop demo
+	$(PY) -m skyloop up --scenario valley --episodes 5 --lockstep --log-dir out/logs
 
 test: $(STAMP)
 	$(PY) -m ruff check .
