@@ -5,8 +5,9 @@ the messages this module rebuilds transitions from (the *log contract*):
 
 - ``episode`` START (seed, start, goal) and END (outcome, steps T);
 - ``observation``: one 35-attribute observation per step, ``step`` = 0 .. T;
-- ``cmd_vel``: the policy's action of each step 0 .. T-1, body-horizontal
-  (forward, left, up, yaw_rate), as the env and the stack apply it;
+- ``cmd_vel`` with frame ``base_link``: the policy's action of each step 0 .. T-1,
+  body-horizontal (forward, left, up, yaw_rate), as the env and the stack apply it
+  (world-frame commands, e.g. of a hold or takeoff, are not policy actions);
 - ``truth``: the true pose per step 0 .. T (for the distance and altitude terms).
 
 Rewards are recomputed, never read from the log, so one log serves every goal reward:
@@ -38,6 +39,7 @@ from policy.rewards import RewardConfig, base_reward, collision_reward, make_goa
 from policy.td3 import TD3, TD3Config
 
 OBS_DIM, FRAMES = 35, 3
+BODY_FRAME = "base_link"  # cmd_vel in the body-horizontal frame: the policy's action
 
 
 @dataclass
@@ -71,7 +73,8 @@ def rebuild_episode(episode, config: RewardConfig) -> Transitions:
     obs = {int(m.decode().step): observation_values(m.decode())[-1]
            for m in episode.topic("observation")}
     truth = [odometry_values(m.decode())[0] for m in episode.topic("truth")]
-    actions = [twist_values(m.decode()) for m in episode.topic("cmd_vel")]
+    commands = (msg.decode() for msg in episode.topic("cmd_vel"))
+    actions = [twist_values(c) for c in commands if c.header.frame_id == BODY_FRAME]
     if T is None or T < 1:
         raise ValueError("no steps")
     if sorted(obs) != list(range(T + 1)):
