@@ -21,8 +21,9 @@ Lockstep: at the odometry of step ``k`` the bridge, if in OFFBOARD, waits (servi
 MAVLink) until the setpoint for step ``k`` arrives or the mode changes, then steps the
 commander and publishes. A dead policy in lockstep stalls the run (sim time does not
 pass); ``skyloop up`` stops the graph when a node dies. Real time: setpoints are
-forwarded as they arrive; commander steps follow the odometry, so setpoint loss for
-1.0 s falls to HOLD, then LAND, as in PX4.
+forwarded as they arrive (once per step: the client's 20 Hz re-sends only feed the
+commander's stream); commander steps follow the odometry, so setpoint loss for 1.0 s
+falls to HOLD, then LAND, as in PX4.
 
 Commander time: wall seconds since the bridge started until the first odometry, then
 ``base + stack time`` (rebased if the simulator restarts), so it never goes backwards.
@@ -81,6 +82,7 @@ class BridgeNode:
         self._sp: tuple[VelocityCommand, int] | None = None  # latest setpoint + its ms
         self._waiting: int | None = None  # lockstep: stamp (ns) we wait a setpoint for
         self._matched = False
+        self._forwarded = -1  # real time: newest step stamp forwarded
         self.scenario = ""
         self.published = 0
         self.stale = 0
@@ -100,6 +102,7 @@ class BridgeNode:
 
     def _stack_time(self, stamp_ns: int) -> float:
         if self._base is None or stamp_ns <= self._last_stamp:  # first step, or a restart
+            self._forwarded = -1
             self._base = max(self.now, time.monotonic() - self._t0) + 0.1 - stamp_ns / 1e9
         self._last_stamp = stamp_ns
         self.now = self._base + stamp_ns / 1e9
@@ -117,8 +120,12 @@ class BridgeNode:
                     self._matched = True
                 else:
                     self.stale += 1
-        elif str(self.commander.state) == "OFFBOARD" and self._body_setpoint():
-            self._publish_body(cmd, stamp if stamp >= 0 else self._last_stamp)
+        elif (str(self.commander.state) == "OFFBOARD" and self._body_setpoint()
+              and self._forwarded < stamp <= self._last_stamp):
+            # a fresh answer to a step seen (timer re-sends carry other times: they keep
+            # the commander's stream alive, the simulator flies the newest command anyway)
+            self._forwarded = stamp
+            self._publish_body(cmd, stamp)
 
     def _body_setpoint(self) -> bool:
         return self._sp is not None and self._sp[0].frame_is_body and self._sp[0].yaw is None
@@ -134,6 +141,7 @@ class BridgeNode:
             select.select(self.link.fileno(), [], [], timeout)
         self.link.poll(self._clock())
         for event in self.commander.pop_events():
+            log.info("commander at %.2f s: %s", event.time, event.text)
             self.link.statustext(event.text, event.severity)
 
     # ------------------------------------------------------------------ bus side

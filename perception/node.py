@@ -46,6 +46,9 @@ class PerceptionNode:
         self.pending: dict[int, dict[str, Any]] = {}
         self.published = 0
         self._q: queue.Queue[tuple[str, Any] | None] = queue.Queue()
+        # Warm up (numba compiles on the first call) before anyone can wait on us.
+        observation_from_scan(np.ones((16, 3), np.float32), self.ico, np.zeros(3), 0.0,
+                              np.zeros(3), np.ones(3), self.config)
         self.pub = bus.publisher(keys.OBSERVATION, vehicle)
         for topic in (keys.EPISODE, keys.CLOCK, keys.ODOM, keys.LIDAR_POINTS):
             bus.subscribe(topic, vehicle, lambda msg, t=topic: self._q.put((t, msg)))

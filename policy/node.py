@@ -14,10 +14,11 @@ episode changes (never carried across episodes), the actor maps the stacked stat
 (the env does the same), sent as SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_NED with
 the velocity + yaw-rate type mask.
 
-**Step matching.** Once in OFFBOARD the client no longer re-sends setpoints on a timer
-(each observation, 10 Hz of stack time, gives one setpoint: more than PX4's 2 Hz), and a
-setpoint's ``time_boot_ms`` is the stack time (ms) of the observation it answers; the
-vehicle's bridge uses it to tell the simulator which step the command is for.
+**Step matching.** A setpoint sent for an observation carries, as ``time_boot_ms``, the
+stack time (ms) of that observation; the vehicle's bridge uses it to tell the simulator
+which step the command is for. In lockstep, once in OFFBOARD, the client stops its
+timer re-sends (each observation gives exactly one setpoint: 10 Hz of stack time, more
+than PX4's 2 Hz); in real time it keeps re-sending the newest at 20 Hz as MAVSDK does.
 """
 
 from __future__ import annotations
@@ -57,8 +58,9 @@ class PolicyNode:
 
     def __init__(self, bus: Bus, controller: Controller, vehicle: str = "uav1",
                  client_config: OffboardClientConfig | None = None, frames: int = 3,
-                 dim: int = 35) -> None:
+                 dim: int = 35, lockstep: bool = True) -> None:
         self.bus, self.controller, self.vehicle = bus, controller, vehicle
+        self.lockstep = lockstep
         self.stacker = FrameStacker(frames, dim)
         self.clock = _StampClock()
         self.client = OffboardClient(client_config, clock=self.clock)
@@ -75,8 +77,9 @@ class PolicyNode:
         c.arm()
         c.takeoff(takeoff_altitude)
         c.start_offboard()
-        c.config.setpoint_period = math.inf  # from now on: one setpoint per observation
-        c._next_setpoint = math.inf  # noqa: SLF001 - stop the timer re-sends now
+        if self.lockstep:  # from now on: exactly one setpoint per observation
+            c.config.setpoint_period = math.inf
+            c._next_setpoint = math.inf  # noqa: SLF001 - stop the timer re-sends now
         log.info("offboard: flying %s", getattr(self.controller, "name", "controller"))
 
     def act(self, msg: object) -> np.ndarray | None:

@@ -218,6 +218,8 @@ class SimNode:
 
     def run(self, emit: Any = print) -> dict:
         """Run every episode; ``emit`` gets one JSON line per episode and the summary."""
+        self.sim.reset(np.random.default_rng(self.config.seed))  # warm up: the first scan
+        self.sim.scan()  # compiles (numba); every episode's reset reseeds everything
         self.wait_subscribers()
         t0 = time.monotonic()
         for i in range(self.config.episodes):

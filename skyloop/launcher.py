@@ -160,7 +160,7 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
         "bridge": ["bridge", *v, *clock, "--api-port", str(ports["api"]),
                    "--api-local-port", str(ports["api_local"]),
                    "--gcs-port", str(ports["gcs"]), "--gcs-local-port", str(ports["gcs_local"])],
-        "policy": ["policy", *v, "--api-port", str(ports["api"]),
+        "policy": ["policy", *v, *clock, "--api-port", str(ports["api"]),
                    *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
         "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
                 str(args.episodes), "--seed", str(args.seed)],

@@ -111,7 +111,8 @@ def cmd_policy(args: argparse.Namespace) -> int:
     bus = _open_bus(args)
     node = PolicyNode(bus, controller, args.vehicle,
                       OffboardClientConfig(listen_host=args.api_host,
-                                           listen_port=args.api_port))
+                                           listen_port=args.api_port),
+                      lockstep=not args.realtime)
     try:
         node.start(args.takeoff_altitude)
         print(READY_LINE, flush=True)
@@ -197,6 +198,7 @@ def add_stack_commands(sub: Any) -> None:
 
     p = sub.add_parser("policy", help="policy node: observation -> actor -> MAVLink setpoints")
     _zenoh_args(p)
+    _clock_args(p)
     p.add_argument("--policy", default=None,
                    help="actor file, 'scripted', 'none' or 'shipped' (default)")
     p.add_argument("--api-host", default="127.0.0.1", help="address to listen on")
