@@ -185,7 +185,9 @@ def run_up(args: argparse.Namespace) -> int:
         if args.router:
             env.update(SKYLOOP_ZENOH_MODE="client", SKYLOOP_ZENOH_CONNECT=endpoint)
             env.pop("SKYLOOP_ZENOH_LISTEN", None)
-            graph.start("router", ["router", "--listen", endpoint])
+            router = graph.start("router", ["router", "--listen", endpoint])
+            if not _wait_listening(endpoint, router, 30.0):
+                return _died(graph, router)
         else:
             env.update(SKYLOOP_ZENOH_MODE="peer", SKYLOOP_ZENOH_HUB=endpoint)
             env.pop("SKYLOOP_ZENOH_CONNECT", None)
@@ -220,6 +222,21 @@ def run_up(args: argparse.Namespace) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2))
     return 0
+
+
+def _wait_listening(endpoint: str, child: Child, timeout: float) -> bool:
+    """Wait until ``tcp/host:port`` accepts connections (False if ``child`` died)."""
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while child.proc.poll() is None:
+        with socket.socket() as s:
+            s.settimeout(0.5)
+            if s.connect_ex((host, int(port))) == 0:
+                return True
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"router not listening on {endpoint} within {timeout:.0f} s")
+        time.sleep(0.02)
+    return False
 
 
 def _died(graph: Graph, child: Child) -> int:
