@@ -50,6 +50,7 @@ log = logging.getLogger("skyloop.sim")
 BODY_FRAME = "base_link"
 EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "
+READY_LINE = "SKYLOOP-SIM-READY"
 
 
 @dataclass
@@ -216,10 +217,16 @@ class SimNode:
         return {"episode": i, "seed": seed, "outcome": outcome, "steps": s.steps,
                 "path_length": length}
 
-    def run(self, emit: Any = print) -> dict:
-        """Run every episode; ``emit`` gets one JSON line per episode and the summary."""
+    def run(self, emit: Any = print, go: Any = None) -> dict:
+        """Run every episode; ``emit`` gets one JSON line per episode and the summary.
+        With ``go`` (a callable that blocks), the node warms up, emits ``READY_LINE`` and
+        waits for ``go()`` to return before the first episode (``skyloop up`` uses it to
+        start the simulator while the policy is still connecting)."""
         self.sim.reset(np.random.default_rng(self.config.seed))  # warm up: the first scan
         self.sim.scan()  # compiles (numba); every episode's reset reseeds everything
+        if go is not None:
+            emit(READY_LINE)
+            go()
         self.wait_subscribers()
         t0 = time.monotonic()
         for i in range(self.config.episodes):

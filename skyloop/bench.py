@@ -15,7 +15,8 @@ import sys
 import time
 from pathlib import Path
 
-MODULES = ["bench_flight", "bench_lidar", "bench_perception", "bench_env", "bench_td3"]
+MODULES = ["bench_flight", "bench_lidar", "bench_perception", "bench_env", "bench_td3",
+           "bench_stack"]
 
 
 def machine() -> dict:

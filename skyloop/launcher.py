@@ -7,13 +7,14 @@ joined through a hub endpoint on a free port (``SKYLOOP_ZENOH_HUB``, so two stac
 one machine do not meet); ``--router`` starts ``skyloop router`` and puts every node in
 client mode.
 
-Start order: [router], [record, until it subscribes], perception, bridge, policy (until
-it reports OFFBOARD: arm, takeoff and offboard done the MAVSDK way), then sim, which
-runs the episodes. In lockstep nothing moves until the sim starts, so every episode is
-the same as in the in-process env. When the sim finishes, the others get SIGTERM (the
-recorder closes its MCAP), then SIGKILL after the grace period. If any child dies first,
-or on Ctrl-C, every child is stopped within 5 s and the launcher exits non-zero, naming
-the node that died and its last log line.
+Start: [router, until it listens], then every node at once; the sim warms up and waits
+for "go" on its stdin, which it gets once [record] subscribed and the policy reported
+OFFBOARD (arm, takeoff and offboard done the MAVSDK way); then it runs the episodes. In
+lockstep nothing moves until the sim starts, so every episode is the same as in the in-
+process env. When the sim finishes, the others get SIGTERM (the recorder closes its
+MCAP), then SIGKILL after the grace period. If any child dies first, or on Ctrl-C, every
+child is stopped within 5 s and the launcher exits non-zero, naming the node that died
+and its last log line.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from typing import Any
 EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "
 READY_LINE = "SKYLOOP-POLICY-READY"
+SIM_READY_LINE = "SKYLOOP-SIM-READY"
 GRACE_S = 3.0
 
 
@@ -79,12 +81,13 @@ class Graph:
         self.episodes: list[dict] = []
         self.summary: dict | None = None
         self.log_path: str | None = None
-        self.ready = {"policy": threading.Event(), "record": threading.Event()}
+        self.ready = {name: threading.Event() for name in ("policy", "record", "sim")}
         self._lock = threading.Lock()
 
-    def start(self, name: str, args: list[str]) -> Child:
+    def start(self, name: str, args: list[str], stdin: int | None = None) -> Child:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "skyloop", *args], env=self.env, stdout=subprocess.PIPE,
+            [sys.executable, "-m", "skyloop", *args], env=self.env, stdin=stdin,
+            stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT, text=True, bufsize=1, start_new_session=True,
             preexec_fn=_pdeathsig)
         child = Child(name, proc)
@@ -110,6 +113,8 @@ class Graph:
                 self.summary = json.loads(line[len(SUMMARY_LINE):])
             elif line.startswith(READY_LINE):
                 self.ready["policy"].set()
+            elif line.startswith(SIM_READY_LINE):
+                self.ready["sim"].set()
             elif child.name == "record" and "recording" in line:
                 self.ready["record"].set()
             elif child.name == "record" and line.startswith("recorded "):
@@ -163,7 +168,7 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
         "policy": ["policy", *v, *clock, "--api-port", str(ports["api"]),
                    *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
         "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
-                str(args.episodes), "--seed", str(args.seed)],
+                str(args.episodes), "--seed", str(args.seed), "--max-steps", str(args.max_steps)],
     }
 
 
@@ -191,17 +196,23 @@ def run_up(args: argparse.Namespace) -> int:
         else:
             env.update(SKYLOOP_ZENOH_MODE="peer", SKYLOOP_ZENOH_HUB=endpoint)
             env.pop("SKYLOOP_ZENOH_CONNECT", None)
+        # Everything starts at once (imports take seconds); the sim warms up, then waits
+        # for "go" until the recorder subscribed and the policy is in OFFBOARD.
         if args.log_dir:
             graph.start("record", ["record", "--out", str(args.log_dir)])
-            if (c := graph.wait_for(graph.ready["record"], "record", 60.0)) is not None:
-                return _died(graph, c)
         for name in ("perception", "bridge"):
             graph.start(name, nodes[name])
         if args.policy != "none":
             graph.start("policy", nodes["policy"])
-            if (c := graph.wait_for(graph.ready["policy"], "policy", 120.0)) is not None:
+        sim = graph.start("sim", [*nodes["sim"], "--wait-go"], stdin=subprocess.PIPE)
+        waits = [("sim", 120.0)] + ([("record", 60.0)] if args.log_dir else []) + \
+            ([("policy", 120.0)] if args.policy != "none" else [])
+        for name, timeout in waits:
+            if (c := graph.wait_for(graph.ready[name], name, timeout)) is not None:
                 return _died(graph, c)
-        sim = graph.start("sim", nodes["sim"])
+        assert sim.proc.stdin is not None
+        sim.proc.stdin.write("go\n")
+        sim.proc.stdin.flush()
         while sim.proc.poll() is None:
             if (c := graph.dead(exclude="sim")) is not None:
                 return _died(graph, c)
@@ -270,6 +281,7 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p.add_argument("--scenario", default="valley")
     p.add_argument("--episodes", type=int, default=5)
     p.add_argument("--seed", type=int, default=1000, help="episode i uses seed + i")
+    p.add_argument("--max-steps", type=int, default=300, help="episode timeout (env: 300)")
     p.add_argument("--policy", default="shipped",
                    help="actor file, 'scripted', 'none' or 'shipped' (default)")
     g = p.add_mutually_exclusive_group()

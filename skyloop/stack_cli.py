@@ -71,8 +71,9 @@ def cmd_sim(args: argparse.Namespace) -> int:
     try:
         node = SimNode(bus, SimNodeConfig(scenario=args.scenario, episodes=args.episodes,
                                           seed=args.seed, vehicle=args.vehicle,
-                                          realtime=args.realtime))
-        node.run(lambda line: print(line, flush=True))
+                                          realtime=args.realtime, max_steps=args.max_steps))
+        go = (lambda: sys.stdin.readline()) if args.wait_go else None
+        node.run(lambda line: print(line, flush=True), go)
     finally:
         bus.close()
     return 0
@@ -190,6 +191,9 @@ def add_stack_commands(sub: Any) -> None:
     p.add_argument("--scenario", default="valley")
     p.add_argument("--episodes", type=int, default=1)
     p.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")
+    p.add_argument("--max-steps", type=int, default=300, help="timeout (env: 300)")
+    p.add_argument("--wait-go", action="store_true",
+                   help="after warming up, print SKYLOOP-SIM-READY and wait for a stdin line")
     p.set_defaults(func=cmd_sim)
 
     p = sub.add_parser("perception", help="perception node: scan + odom + goal -> observation")

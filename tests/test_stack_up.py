@@ -164,6 +164,7 @@ def test_child_death_stops_the_graph():
 def test_launcher_lines_match_nodes():
     from policy.node import READY_LINE
     from sitl.node import EPISODE_LINE, SUMMARY_LINE
+    from sitl.node import READY_LINE as SIM_READY_LINE
 
-    assert (launcher.EPISODE_LINE, launcher.SUMMARY_LINE, launcher.READY_LINE) == \
-        (EPISODE_LINE, SUMMARY_LINE, READY_LINE)
+    assert (launcher.EPISODE_LINE, launcher.SUMMARY_LINE, launcher.READY_LINE,
+            launcher.SIM_READY_LINE) == (EPISODE_LINE, SUMMARY_LINE, READY_LINE, SIM_READY_LINE)

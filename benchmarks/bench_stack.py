@@ -1,0 +1,86 @@
+"""Stack benchmark: the whole process graph through ``skyloop up`` (loopback peers).
+
+Keys:
+
+- ``stack_lockstep_steps_per_s``: control steps per second of wall time in lockstep,
+  shipped policy on the valley (simulator, perception, policy, MAVLink and bridge each a
+  process; start-up excluded). Goal: >= 300 (30x real time).
+- ``stack_lockstep_latency_ms_p50``/``_p99``: per step, scan publish -> the step's
+  command back at the simulator (the lockstep round trip through every node).
+- ``stack_realtime_latency_ms_p50``/``_p99``: the same in real time (10 Hz, wall
+  clock), i.e. scan to setpoint at the vehicle plus one bus hop. Goal: p99 <= 10 ms.
+- ``stack_realtime_late_steps``: steps flown on an older command (deadline missed).
+
+``peers`` holds ``env_steps_per_s``: the in-process env (same policy, same episodes)
+measured in the same run, the ceiling the graph is compared with.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+SEED = 1000
+
+
+def _free(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run_up(*extra: str, timeout: float = 600.0) -> dict:
+    """One ``skyloop up`` on free ports; its summary."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "summary.json"
+        udp = [_free(socket.SOCK_DGRAM) for _ in range(4)]
+        cmd = [sys.executable, "-m", "skyloop", "up", "--hub", f"tcp/127.0.0.1:{_free()}",
+               "--api-port", str(udp[0]), "--api-local-port", str(udp[1]),
+               "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3]),
+               "--seed", str(SEED), "--json", str(out), *extra]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+        if proc.returncode != 0:
+            raise RuntimeError(f"skyloop up failed: {proc.stdout[-2000:]}{proc.stderr[-2000:]}")
+        return json.loads(out.read_text())
+
+
+def env_steps_per_s(episodes: int) -> float:
+    """The in-process env with the shipped policy on the same seeds."""
+    import torch
+
+    from policy.env import UavNavEnv
+    from policy.evaluate import make_controller
+    from policy.rollout import run_episode
+
+    torch.set_num_threads(1)
+    controller, env = make_controller(None), UavNavEnv(scenario="valley")
+    run_episode(env, controller, SEED)  # warm up
+    t0, steps = time.perf_counter(), 0
+    for i in range(episodes):
+        steps += run_episode(env, controller, SEED + i).steps
+    return steps / (time.perf_counter() - t0)
+
+
+def run(quick: bool) -> dict:
+    lock = run_up("--lockstep", "--episodes", "1" if quick else "10")
+    rt = run_up("--realtime", "--episodes", "1", "--max-steps", "30" if quick else "300")
+    if not quick:
+        rt = run_up("--realtime", "--episodes", "3")
+    return {
+        "stack_lockstep_steps_per_s": lock["steps_per_s"],
+        "stack_lockstep_latency_ms_p50": lock.get("latency_ms_p50"),
+        "stack_lockstep_latency_ms_p99": lock.get("latency_ms_p99"),
+        "stack_realtime_latency_ms_p50": rt.get("latency_ms_p50"),
+        "stack_realtime_latency_ms_p99": rt.get("latency_ms_p99"),
+        "stack_realtime_late_steps": rt.get("late_steps"),
+        "peers": {"env_steps_per_s": env_steps_per_s(1 if quick else 10)},
+    }
+
+
+if __name__ == "__main__":
+    print(json.dumps(run("--quick" in sys.argv), indent=2))
