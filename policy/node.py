@@ -71,6 +71,7 @@ class PolicyNode:
 
     def start(self, takeoff_altitude: float | None = None, timeout: float = 30.0) -> None:
         """Connect, stream a zero setpoint, arm, take off, start offboard."""
+        self.controller(self.stacker.state)  # warm up (torch's first call is slow)
         c = self.client
         c.wait_heartbeat(timeout)
         c.set_velocity_body(0.0, 0.0, 0.0, 0.0)

@@ -123,6 +123,7 @@ class SimNode:
         self.latencies_ms: list[float] = []
         self._last_cmd: Any = None
         self.results: list[dict] = []
+        self.timing = {"publish_s": 0.0, "wait_s": 0.0, "step_s": 0.0}  # where wall time went
 
     # ------------------------------------------------------------------ publishing
     def _stamp(self) -> float:
@@ -201,9 +202,15 @@ class SimNode:
                 if next_tick > now:
                     time.sleep(next_tick - now)
                 next_tick = max(next_tick + period, time.monotonic() - period)
+            t0 = time.perf_counter()
             t_pub = self._publish_step(i, s.steps)
+            t1 = time.perf_counter()
             msg = self._wait_command(t_pub, next_tick if c.realtime else None)
+            t2 = time.perf_counter()
             collided = self._apply(msg)
+            self.timing["publish_s"] += t1 - t0
+            self.timing["wait_s"] += t2 - t1
+            self.timing["step_s"] += time.perf_counter() - t2
             self.g += 1
             truth = s.vehicle.truth
             path.append(truth.position.copy())
@@ -245,7 +252,8 @@ class SimNode:
         steps = sum(r["steps"] for r in self.results)
         out.update(steps=steps, mean_steps=steps / n if n else 0.0, wall_s=wall_s,
                    steps_per_s=steps / wall_s if wall_s > 0 else 0.0,
-                   stale_commands=self.stale, late_steps=self.late)
+                   stale_commands=self.stale, late_steps=self.late,
+                   **{k: round(v, 3) for k, v in self.timing.items()})
         if self.latencies_ms:
             lat = np.array(self.latencies_ms)
             out.update(latency_ms_p50=float(np.percentile(lat, 50)),

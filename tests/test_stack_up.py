@@ -168,3 +168,17 @@ def test_launcher_lines_match_nodes():
 
     assert (launcher.EPISODE_LINE, launcher.SUMMARY_LINE, launcher.READY_LINE,
             launcher.SIM_READY_LINE) == (EPISODE_LINE, SUMMARY_LINE, READY_LINE, SIM_READY_LINE)
+
+
+def test_realtime_run_reports_latency(tmp_path):
+    out = tmp_path / "rt.json"
+    proc = subprocess.run(up_args("--realtime", "--episodes", "1", "--max-steps", "20",
+                                  "--policy", "scripted", "--json", str(out)),
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    s = json.loads(out.read_text())
+    assert s["mode"] == "realtime" and s["episodes"] == 1
+    assert s["steps"] <= 20
+    assert 8.0 < s["steps_per_s"] < 11.0  # paced at 10 Hz
+    assert 0.0 < s["latency_ms_p50"] <= s["latency_ms_p99"]
+    assert "latency p50" in proc.stdout
