@@ -1,0 +1,101 @@
+"""The bridge node over real loopback Zenoh and UDP MAVLink, in real time.
+
+A policy node (scripted actor, its MAVLink client on a free port) arms, takes off and
+enters OFFBOARD through the bridge; its setpoints come out on ``cmd_vel`` in the body
+frame, stamped with the step they answer. Then the policy "dies" (its link closes) and
+the bridge's commander falls to HOLD after 1.0 s of stack time, then LAND, and says so
+on ``cmd_vel`` (world frame) without any help from the simulator.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from bus import keys
+from bus import messages as m
+from bus.session import Bus, SessionConfig
+from mavlink_bridge.node import BODY_FRAME, BridgeNode
+from mavlink_bridge.offboard_client import OffboardClientConfig
+from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
+from policy.node import PolicyNode
+from sitl.commander import Commander, VehicleSample
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(cond, timeout=10.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.002)
+
+
+@pytest.fixture
+def graph():
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    buses = [Bus.open(cfg) for _ in range(3)]
+    api, local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    bridge = BridgeNode(buses[0], Commander(), VehicleSample, "uav1",
+                        VehicleLinkConfig(api=LinkConfig(local, api), gcs=None), lockstep=False)
+    stop = threading.Event()
+    thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
+    thread.start()
+    policy = PolicyNode(buses[1], lambda s: np.array([1.0, 0.5, 0.25, 0.125], np.float32),
+                        "uav1", OffboardClientConfig(listen_port=api), lockstep=False)
+    yield bridge, policy, buses[2]
+    stop.set()
+    thread.join(5.0)
+    policy.close()
+    for bus in buses:
+        bus.close()
+    bridge.close()
+
+
+def odom(k: int, z: float = 10.0):
+    return m.odometry((0.0, 0.0, z), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), k / 10)
+
+
+def test_offboard_then_setpoint_loss_failsafe(graph):
+    bridge, policy, test_bus = graph
+    pub_odom = test_bus.publisher(keys.ODOM, "uav1")
+    pub_obs = test_bus.publisher(keys.OBSERVATION, "uav1")
+    cmds = test_bus.inbox(keys.CMD_VEL, "uav1", maxsize=256)
+    assert pub_odom.wait_matched() and pub_obs.wait_matched()
+    policy.start(timeout=10.0)
+    assert str(bridge.commander.state) == "OFFBOARD"
+
+    for k in range(5):  # the policy answers each step; the bridge forwards, stamped
+        pub_odom.put(odom(k))
+        wait_for(lambda k=k: bridge._last_stamp == k * 100_000_000, what=f"odom {k}")
+        pub_obs.put(m.observation(np.zeros(35, np.float32), k / 10, 0, k))
+        policy.spin_once(timeout=5.0)
+        msg = cmds.get(timeout=5.0)
+        assert msg.header.frame_id == BODY_FRAME
+        assert m.nanoseconds(msg.header.stamp) == k * 100_000_000
+        assert m.twist_values(msg) == (1.0, 0.5, 0.25, 0.125)
+
+    policy.close()  # the policy process dies: no more setpoints
+    for k in range(5, 80):  # 7.5 s of stack time
+        pub_odom.put(odom(k))
+        wait_for(lambda k=k: bridge._last_stamp == k * 100_000_000, what=f"odom {k}")
+    wait_for(lambda: bridge.published >= 5 + 60, what="failsafe commands")
+    seen = []
+    while (msg := cmds.get_nowait()) is not None:
+        seen.append((m.nanoseconds(msg.header.stamp) // 100_000_000, msg.header.frame_id,
+                     m.twist_values(msg)))
+    assert all(frame == "world" for _, frame, _ in seen)
+    first = seen[0][0]
+    assert 14 <= first <= 16  # > 1.0 s after the last setpoint (step 4): HOLD
+    assert seen[0][2] == (0.0, 0.0, 0.0, 0.0)
+    assert seen[-1][2][2] < 0.0  # then LAND: descending
+    assert str(bridge.commander.state) == "LAND"
