@@ -133,29 +133,51 @@ def test_router_run_is_byte_identical(runs):
     assert runs["router"][0]["router"] is True
 
 
-def test_child_death_stops_the_graph():
+def flying_graph() -> tuple[subprocess.Popen, dict[str, int]]:
+    """``skyloop up`` for many episodes, returned once the first episode ended."""
     proc = subprocess.Popen(up_args("--episodes", "50", "--policy", "scripted"), cwd=ROOT,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     pids: dict[str, int] = {}
+    assert proc.stdout is not None
+    for line in proc.stdout:
+        if line.startswith("started "):
+            pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
+        if line.startswith("episode "):  # the graph is flying
+            break
+    return proc, pids
+
+
+def assert_all_gone(pids: dict[str, int]) -> None:
+    for pid in pids.values():
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+
+
+def test_child_death_stops_the_graph():
+    proc, pids = flying_graph()
     try:
-        assert proc.stdout is not None
-        for line in proc.stdout:
-            if line.startswith("started "):
-                name, pid = line.split()[1], int(line.split("pid ")[1].rstrip(")\n"))
-                pids[name] = pid
-            if line.startswith("episode "):  # the graph is flying
-                break
-        assert "perception" in pids, pids
+        assert set(pids) == {"perception", "bridge", "policy", "sim"}, pids
         os.kill(pids["perception"], signal.SIGKILL)
         t0 = time.monotonic()
         rest = proc.communicate(timeout=10)[0]
         assert time.monotonic() - t0 < 5.0
         assert proc.returncode != 0
-        assert "'perception'" in rest
-        for name, pid in pids.items():  # every child is gone
-            with pytest.raises(ProcessLookupError):
-                os.kill(pid, 0)
-            del name
+        assert "'perception'" in rest and "last log line" in rest
+        assert_all_gone(pids)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
+def test_ctrl_c_stops_the_graph():
+    proc, pids = flying_graph()
+    try:
+        proc.send_signal(signal.SIGINT)
+        t0 = time.monotonic()
+        proc.communicate(timeout=10)
+        assert time.monotonic() - t0 < 5.0
+        assert proc.returncode == 130
+        assert_all_gone(pids)
     finally:
         if proc.poll() is None:
             proc.kill()
