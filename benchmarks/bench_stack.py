@@ -68,7 +68,7 @@ def env_steps_per_s(episodes: int) -> float:
 
 def run(quick: bool) -> dict:
     lock = run_up("--lockstep", "--episodes", "1" if quick else "10")
-    rt = run_up("--realtime", "--episodes", "1", "--max-steps", "30" if quick else "300")
+    rt = run_up("--realtime", "--episodes", "1", "--max-steps", "20" if quick else "300")
     if not quick:
         rt = run_up("--realtime", "--episodes", "3")
     return {

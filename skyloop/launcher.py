@@ -10,8 +10,8 @@ client mode.
 Start: [router, until it listens], then every node at once; the sim warms up and waits
 for "go" on its stdin, which it gets once [record] subscribed and the policy reported
 OFFBOARD (arm, takeoff and offboard done the MAVSDK way); then it runs the episodes. In
-lockstep nothing moves until the sim starts, so every episode is the same as in the in-
-process env. When the sim finishes, the others get SIGTERM (the recorder closes its
+lockstep nothing moves until the sim starts, so every episode is the same as in the
+in-process env. When the sim finishes, the others get SIGTERM (the recorder closes its
 MCAP), then SIGKILL after the grace period. If any child dies first, or on Ctrl-C, every
 child is stopped within 5 s and the launcher exits non-zero, naming the node that died
 and its last log line.
