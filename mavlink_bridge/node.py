@@ -19,11 +19,14 @@ the commander decides what that is, so its failsafes work whatever the policy do
 
 Lockstep: at the odometry of step ``k`` the bridge, if in OFFBOARD, waits (servicing
 MAVLink) until the setpoint for step ``k`` arrives or the mode changes, then steps the
-commander and publishes. A dead policy in lockstep stalls the run (sim time does not
-pass); ``skyloop up`` stops the graph when a node dies. Real time: setpoints are
-forwarded as they arrive (once per step: the client's 20 Hz re-sends only feed the
-commander's stream); commander steps follow the odometry, so setpoint loss for 1.0 s
-falls to HOLD, then LAND, as in PX4.
+commander and publishes. If no setpoint comes within ``lockstep_timeout_s`` of *wall*
+time (2 s; a healthy step takes milliseconds) the policy is taken as gone: the step is
+flown without it (the last setpoint, as PX4 would), and after 1.0 s of stack time the
+commander's setpoint-loss failsafe acts as in real time (logged and counted in
+``missed``: such a run is no longer deterministic). Real time: setpoints are
+forwarded as they arrive (once per step: the client's 20 Hz re-sends carry the same
+step stamp and only feed the commander's stream); commander steps follow the
+odometry, so setpoint loss for 1.0 s falls to HOLD, then LAND, as in PX4.
 
 Commander time: wall seconds since the bridge started until the first odometry, then
 ``base + stack time`` (rebased if the simulator restarts), so it never goes backwards.
@@ -57,9 +60,12 @@ class BridgeNode:
 
     def __init__(self, bus: Bus, commander: Any, make_sample: SampleFactory,
                  vehicle: str = "uav1", link_config: VehicleLinkConfig | None = None,
-                 lockstep: bool = True, ground: Ground | None = None) -> None:
+                 lockstep: bool = True, ground: Ground | None = None,
+                 lockstep_timeout_s: float = 2.0) -> None:
         self.bus, self.commander, self.make_sample = bus, commander, make_sample
         self.lockstep, self.ground = lockstep, ground
+        self.lockstep_timeout_s = lockstep_timeout_s
+        self.missed = 0  # lockstep steps taken without their setpoint
         self.link = VehicleLink(commander, link_config, on_setpoint=self._on_setpoint)
         original = self.link.handlers["SET_POSITION_TARGET_LOCAL_NED"]
 
@@ -122,8 +128,8 @@ class BridgeNode:
                     self.stale += 1
         elif (str(self.commander.state) == "OFFBOARD" and self._body_setpoint()
               and self._forwarded < stamp <= self._last_stamp):
-            # a fresh answer to a step seen (timer re-sends carry other times: they keep
-            # the commander's stream alive, the simulator flies the newest command anyway)
+            # a fresh answer to a step seen (re-sends carry the same stamp: they keep the
+            # commander's stream alive; the simulator flies the newest command anyway)
             self._forwarded = stamp
             self._publish_body(cmd, stamp)
 
@@ -165,7 +171,14 @@ class BridgeNode:
             # the setpoint may already be here (read while this odometry was queued)
             self._waiting = stamp
             self._matched = self._sp is not None and self._sp[1] * 1_000_000 == stamp
+            deadline = time.monotonic() + self.lockstep_timeout_s
             while not (self._matched or stop()) and str(self.commander.state) == "OFFBOARD":
+                if time.monotonic() > deadline:  # the policy is gone or stuck: step without
+                    self.missed += 1
+                    log.warning("lockstep: no setpoint for stack time %.1f s within %.1f s "
+                                "(wall); stepping without it", stamp / 1e9,
+                                self.lockstep_timeout_s)
+                    break
                 self._service(0.05)
             self._waiting = None
         out = self.commander.step(now, self.make_sample(z, vz, yaw, self._agl(x, y, z)))

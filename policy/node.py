@@ -16,9 +16,10 @@ the velocity + yaw-rate type mask.
 
 **Step matching.** A setpoint sent for an observation carries, as ``time_boot_ms``, the
 stack time (ms) of that observation; the vehicle's bridge uses it to tell the simulator
-which step the command is for. In lockstep, once in OFFBOARD, the client stops its
-timer re-sends (each observation gives exactly one setpoint: 10 Hz of stack time, more
-than PX4's 2 Hz); in real time it keeps re-sending the newest at 20 Hz as MAVSDK does.
+which step the command is for. Once in OFFBOARD the client's own timer re-sends stop:
+in lockstep each observation gives exactly one setpoint (10 Hz of stack time, more than
+PX4's 2 Hz); in real time the node re-sends the newest every 50 ms as MAVSDK does, with
+the same step stamp, so the bridge forwards each step's setpoint once.
 """
 
 from __future__ import annotations
@@ -68,6 +69,9 @@ class PolicyNode:
         self.episode: int | None = None
         self.sent = 0
         self.bad_actions = 0
+        self.resend_period = 0.05  # real time, as MAVSDK's 20 Hz
+        self._stamp_s: float | None = None
+        self._next_resend = math.inf
 
     def start(self, takeoff_altitude: float | None = None, timeout: float = 30.0) -> None:
         """Connect, stream a zero setpoint, arm, take off, start offboard."""
@@ -78,9 +82,9 @@ class PolicyNode:
         c.arm()
         c.takeoff(takeoff_altitude)
         c.start_offboard()
-        if self.lockstep:  # from now on: exactly one setpoint per observation
-            c.config.setpoint_period = math.inf
-            c._next_setpoint = math.inf  # noqa: SLF001 - stop the timer re-sends now
+        # From now on the node paces the stream itself (see the module docstring).
+        c.config.setpoint_period = math.inf
+        c._next_setpoint = math.inf  # noqa: SLF001 - stop the client's timer re-sends
         log.info("offboard: flying %s", getattr(self.controller, "name", "controller"))
 
     def act(self, msg: object) -> np.ndarray | None:
@@ -98,25 +102,39 @@ class PolicyNode:
                         step)
             return None
         action = np.clip(action, -MAX_ACTION, MAX_ACTION).astype(np.float32)
-        stamp_s = m.seconds(msg.header.stamp)
-        # time_boot_ms = int((clock - t0) * 1000): aim at the middle of the millisecond.
-        self.clock.override = self.client._t0 + stamp_s + 0.0005  # noqa: SLF001
-        try:
-            self.client.set_velocity_body(*(float(a) for a in action))
-        finally:
-            self.clock.override = None
+        self._stamp_s = m.seconds(msg.header.stamp)
+        self._stamped(lambda: self.client.set_velocity_body(*(float(a) for a in action)))
+        self._next_resend = time.monotonic() + self.resend_period
         self.sent += 1
         return action
+
+    def _stamped(self, send: Callable[[], None]) -> None:
+        """Send with ``time_boot_ms`` = the stack time (ms) of the step answered."""
+        # time_boot_ms = int((clock - t0) * 1000): aim at the middle of the millisecond.
+        self.clock.override = self.client._t0 + self._stamp_s + 0.0005  # noqa: SLF001
+        try:
+            send()
+        finally:
+            self.clock.override = None
+
+    def _resend_due(self) -> None:
+        """Real time: re-send the newest setpoint (same step stamp) every 50 ms."""
+        if self.lockstep or self._stamp_s is None or time.monotonic() < self._next_resend:
+            return
+        self._stamped(self.client._send_setpoint)  # noqa: SLF001
+        self._next_resend = time.monotonic() + self.resend_period
 
     def spin_once(self, timeout: float = 0.05) -> None:
         """Handle one observation (waiting up to ``timeout``), then service the link."""
         try:
-            msg = self.inbox.get(timeout=timeout)
+            wait = timeout if self.lockstep else min(timeout, self.resend_period)
+            msg = self.inbox.get(timeout=wait)
         except TimeoutError:
             msg = None
         if msg is not None:
             self.act(msg)
         self.client.poll()
+        self._resend_due()
 
     def run(self, stop: Callable[[], bool]) -> None:
         while not stop():

@@ -41,32 +41,43 @@ def wait_for(cond, timeout=10.0, what="condition"):
 
 
 @pytest.fixture
-def graph():
-    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
-    buses = [Bus.open(cfg) for _ in range(3)]
-    api, local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
-    bridge = BridgeNode(buses[0], Commander(), VehicleSample, "uav1",
-                        VehicleLinkConfig(api=LinkConfig(local, api), gcs=None), lockstep=False)
-    stop = threading.Event()
-    thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
-    thread.start()
-    policy = PolicyNode(buses[1], lambda s: np.array([1.0, 0.5, 0.25, 0.125], np.float32),
-                        "uav1", OffboardClientConfig(listen_port=api), lockstep=False)
-    yield bridge, policy, buses[2]
-    stop.set()
-    thread.join(5.0)
-    policy.close()
-    for bus in buses:
-        bus.close()
-    bridge.close()
+def make_graph():
+    opened: list = []
+
+    def make(lockstep: bool):
+        cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+        buses = [Bus.open(cfg) for _ in range(3)]
+        api, local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+        bridge = BridgeNode(buses[0], Commander(), VehicleSample, "uav1",
+                            VehicleLinkConfig(api=LinkConfig(local, api), gcs=None),
+                            lockstep=lockstep, lockstep_timeout_s=0.05)
+        stop = threading.Event()
+        thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
+        thread.start()
+        policy = PolicyNode(buses[1], lambda s: np.array([1.0, 0.5, 0.25, 0.125], np.float32),
+                            "uav1", OffboardClientConfig(listen_port=api), lockstep=lockstep)
+        opened.append((stop, thread, policy, buses, bridge))
+        return bridge, policy, buses[2]
+
+    yield make
+    for stop, thread, policy, buses, bridge in opened:
+        stop.set()
+        thread.join(5.0)
+        policy.close()
+        for bus in buses:
+            bus.close()
+        bridge.close()
 
 
 def odom(k: int, z: float = 10.0):
     return m.odometry((0.0, 0.0, z), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), k / 10)
 
 
-def test_offboard_then_setpoint_loss_failsafe(graph):
-    bridge, policy, test_bus = graph
+@pytest.mark.parametrize("lockstep", [False, True], ids=["realtime", "lockstep"])
+def test_offboard_then_setpoint_loss_failsafe(make_graph, lockstep):
+    """Lockstep: the bridge waits for each step's setpoint, and after lockstep_timeout_s
+    of wall time flies on without it, so the failsafe acts as in real time."""
+    bridge, policy, test_bus = make_graph(lockstep)
     pub_odom = test_bus.publisher(keys.ODOM, "uav1")
     pub_obs = test_bus.publisher(keys.OBSERVATION, "uav1")
     cmds = test_bus.inbox(keys.CMD_VEL, "uav1", maxsize=256)
@@ -76,7 +87,8 @@ def test_offboard_then_setpoint_loss_failsafe(graph):
 
     for k in range(5):  # the policy answers each step; the bridge forwards, stamped
         pub_odom.put(odom(k))
-        wait_for(lambda k=k: bridge._last_stamp == k * 100_000_000, what=f"odom {k}")
+        if not lockstep:  # real time forwards only answers to steps the bridge has seen
+            wait_for(lambda k=k: bridge._last_stamp == k * 100_000_000, what=f"odom {k}")
         pub_obs.put(m.observation(np.zeros(35, np.float32), k / 10, 0, k))
         policy.spin_once(timeout=5.0)
         msg = cmds.get(timeout=5.0)
@@ -88,11 +100,16 @@ def test_offboard_then_setpoint_loss_failsafe(graph):
     for k in range(5, 80):  # 7.5 s of stack time
         pub_odom.put(odom(k))
         wait_for(lambda k=k: bridge._last_stamp == k * 100_000_000, what=f"odom {k}")
-    wait_for(lambda: bridge.published >= 5 + 60, what="failsafe commands")
+    wait_for(lambda: bridge.published >= (80 if lockstep else 5 + 60), what="commands")
     seen = []
     while (msg := cmds.get_nowait()) is not None:
         seen.append((m.nanoseconds(msg.header.stamp) // 100_000_000, msg.header.frame_id,
                      m.twist_values(msg)))
+    if lockstep:  # the last setpoint is flown until the timeout, one command per step
+        assert [k for k, _, _ in seen] == list(range(5, 80))
+        assert all(f == BODY_FRAME for k, f, _ in seen if k < 14)
+        assert bridge.missed >= 9
+        seen = [x for x in seen if x[1] == "world"]
     assert all(frame == "world" for _, frame, _ in seen)
     first = seen[0][0]
     assert 14 <= first <= 16  # > 1.0 s after the last setpoint (step 4): HOLD
