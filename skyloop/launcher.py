@@ -162,7 +162,8 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
     v = ["--vehicle", args.vehicle]
     return {
         "perception": ["perception", *v],
-        "bridge": ["bridge", *v, *clock, "--api-port", str(ports["api"]),
+        "bridge": ["bridge", *v, *clock, "--scenario", args.scenario,
+                   "--api-port", str(ports["api"]),
                    "--api-local-port", str(ports["api_local"]),
                    "--gcs-port", str(ports["gcs"]), "--gcs-local-port", str(ports["gcs_local"])],
         "policy": ["policy", *v, *clock, "--api-port", str(ports["api"]),

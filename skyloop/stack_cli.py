@@ -138,6 +138,8 @@ def cmd_bridge(args: argparse.Namespace) -> int:
             worlds[scenario] = World(load_scenario(scenario))
         return float(worlds[scenario].terrain_height(x, y))
 
+    if args.scenario:  # load the terrain now, not at the first episode (real time)
+        ground(args.scenario, 0.0, 0.0)
     link = VehicleLinkConfig(
         api=LinkConfig(args.api_local_port, args.api_port, args.bind, args.api_host),
         gcs=None if args.no_gcs else LinkConfig(args.gcs_local_port, args.gcs_port,
@@ -222,6 +224,8 @@ def add_stack_commands(sub: Any) -> None:
     p.add_argument("--gcs-port", type=int, default=MAVLINK_DEFAULTS["gcs_port"])
     p.add_argument("--gcs-local-port", type=int, default=MAVLINK_DEFAULTS["gcs_local_port"])
     p.add_argument("--no-gcs", action="store_true", help="no ground-station link")
+    p.add_argument("--scenario", default=None,
+                   help="preload this scenario's terrain (for the land detector)")
     p.set_defaults(func=cmd_bridge)
 
     p = sub.add_parser("record", help="record skyloop/** into MCAP (see 'record --help')",
