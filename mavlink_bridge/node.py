@@ -89,6 +89,7 @@ class BridgeNode:
         self._waiting: int | None = None  # lockstep: stamp (ns) we wait a setpoint for
         self._matched = False
         self._forwarded = -1  # real time: newest step stamp forwarded
+        self._early: tuple[VelocityCommand, int] | None = None  # real time: ahead of odom
         self.scenario = ""
         self.published = 0
         self.stale = 0
@@ -126,12 +127,14 @@ class BridgeNode:
                     self._matched = True
                 else:
                     self.stale += 1
-        elif (str(self.commander.state) == "OFFBOARD" and self._body_setpoint()
-              and self._forwarded < stamp <= self._last_stamp):
-            # a fresh answer to a step seen (re-sends carry the same stamp: they keep the
-            # commander's stream alive; the simulator flies the newest command anyway)
-            self._forwarded = stamp
-            self._publish_body(cmd, stamp)
+        elif str(self.commander.state) == "OFFBOARD" and self._body_setpoint():
+            if self._forwarded < stamp <= self._last_stamp:
+                # a fresh answer to a step seen (re-sends carry the same stamp: they keep
+                # the commander's stream alive; the simulator flies the newest anyway)
+                self._forwarded = stamp
+                self._publish_body(cmd, stamp)
+            elif stamp > self._last_stamp:  # its odometry is still on the way to us
+                self._early = (cmd, stamp)
 
     def _body_setpoint(self) -> bool:
         return self._sp is not None and self._sp[0].frame_is_body and self._sp[0].yaw is None
@@ -182,6 +185,10 @@ class BridgeNode:
                 self._service(0.05)
             self._waiting = None
         out = self.commander.step(now, self.make_sample(z, vz, yaw, self._agl(x, y, z)))
+        early, self._early = self._early, None
+        if early is not None and early[1] == stamp and str(self.commander.state) == "OFFBOARD":
+            self._forwarded = stamp  # real time: the setpoint beat its odometry here
+            self._publish_body(*early)
         if str(self.commander.state) == "OFFBOARD" and self._body_setpoint():
             if self.lockstep:
                 assert self._sp is not None
