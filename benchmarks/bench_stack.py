@@ -13,6 +13,12 @@ Keys:
 
 ``peers`` holds ``env_steps_per_s``: the in-process env (same policy, same episodes)
 measured in the same run, the ceiling the graph is compared with.
+
+Measured 2026-11-22 (full mode, the other core busy with a training run, so the five
+processes share about one core): lockstep 170-194 steps/s (goal 300 not met; the nodes
+spend about 8 ms of CPU per step together), lockstep p50/p99 2.6-3.0 / 7-8 ms, real
+time p50/p99 3.0 / 7.7 ms, env peer 520-580 steps/s. Quick mode takes about 22 s (two
+graph start-ups of about 7 s each).
 """
 
 from __future__ import annotations
