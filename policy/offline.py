@@ -10,7 +10,9 @@ the messages this module rebuilds transitions from (the *log contract*):
   (world-frame commands, e.g. of a hold or takeoff, are not policy actions);
 - ``truth``: the true pose per step 0 .. T (for the distance and altitude terms).
 
-Rewards are recomputed, never read from the log, so one log serves every goal reward:
+Stack logs end an episode without a scan after the last step; its observation is then
+approximated by :func:`terminal_observation`. Rewards are recomputed, never read from
+the log, so one log serves every goal reward:
 eq. 3.5 from the truth distances and altitude and the logged h, g (the observation
 stores h/180 and g/180 as float32, so recomputed rewards agree with the env's to about
 1e-5), the collision reward on a collision end, then TR/NGR/EGR/ABR rewrite the
@@ -32,7 +34,8 @@ import torch
 from tqdm import tqdm
 
 from bus.log import read_episodes
-from bus.messages import observation_values, odometry_values, twist_values
+from bus.log_reader import EpisodeLogReader
+from bus.messages import nanoseconds, observation_values, odometry_values, twist_values
 from perception.observation import FrameStacker
 from policy.replay import ReplayBuffer
 from policy.rewards import RewardConfig, base_reward, collision_reward, make_goal_reward
@@ -65,8 +68,14 @@ class LogReport:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
 
 
-def rebuild_episode(episode, config: RewardConfig) -> Transitions:
-    """Transitions of one complete episode; ``ValueError`` names what does not fit."""
+def rebuild_episode(episode, config: RewardConfig,
+                    commands: dict[int, tuple] | None = None) -> Transitions:
+    """Transitions of one complete episode; ``ValueError`` names what does not fit.
+
+    ``commands`` (body-frame ``cmd_vel`` of the whole file by stamp) recovers an action
+    the recorder saw after the episode's END event: in a stack run commands come from
+    the bridge and events from the sim, so the last command can arrive late.
+    """
     T = episode.steps
     goal = np.array([episode.start_event.goal.x, episode.start_event.goal.y,
                      episode.start_event.goal.z])
@@ -77,10 +86,15 @@ def rebuild_episode(episode, config: RewardConfig) -> Transitions:
     actions = [twist_values(c) for c in commands if c.header.frame_id == BODY_FRAME]
     if T is None or T < 1:
         raise ValueError("no steps")
-    if sorted(obs) != list(range(T + 1)):
-        raise ValueError(f"observations for steps {sorted(obs)[:3]}.. but T = {T}")
+    if len(actions) != T and commands is not None:
+        stamps = [nanoseconds(msg.decode().header.stamp) for msg in episode.topic("truth")]
+        actions = [commands[t] for t in stamps[:T] if t in commands]
     if len(truth) != T + 1 or len(actions) != T:
         raise ValueError(f"{len(truth)} truth poses and {len(actions)} actions for T = {T}")
+    if sorted(obs) == list(range(T)):  # a stack log: no scan after the last step
+        obs[T] = terminal_observation(obs[T - 1], truth[T], episode.topic("truth")[-1], goal)
+    if sorted(obs) != list(range(T + 1)):
+        raise ValueError(f"observations for steps {sorted(obs)[:3]}.. but T = {T}")
     stacker = FrameStacker(FRAMES, OBS_DIM)
     stacks = [stacker.push(obs[k]) for k in range(T + 1)]
     dist = [float(np.linalg.norm(p - goal)) for p in truth]
@@ -96,6 +110,38 @@ def rebuild_episode(episode, config: RewardConfig) -> Transitions:
     return Transitions(np.stack(stacks[:-1]), np.asarray(actions, np.float32), rewards,
                        np.stack(stacks[1:]), outcome in ("success", "collision"),
                        outcome == "success")
+
+
+def body_commands(path: Path) -> dict[int, tuple]:
+    """Every body-frame ``cmd_vel`` of a log by header stamp (ns)."""
+    out = {}
+    for msg in EpisodeLogReader(path).messages():
+        if msg.name == "cmd_vel":
+            try:
+                cmd = msg.decode()
+            except Exception:  # counted by the reader's report; not an action we can use
+                continue
+            if cmd.header.frame_id == BODY_FRAME:
+                out[nanoseconds(cmd.header.stamp)] = twist_values(cmd)
+    return out
+
+
+def terminal_observation(previous: np.ndarray, position: np.ndarray, truth_msg,
+                         goal: np.ndarray) -> np.ndarray:
+    """The observation after the last step when the log has none (stack logs end the
+    episode without a last scan): the previous faces, altitude and h, g from the
+    terminal *true* pose (the env uses the estimate; they differ by centimetres and
+    fractions of a degree). Used for the last reward and next state only."""
+    from perception.observation import ObservationConfig, goal_angles
+
+    cfg = ObservationConfig()
+    _, velocity, q = odometry_values(truth_msg.decode())
+    x, y, z, w = q
+    yaw = float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+    h, g = goal_angles(position, yaw, velocity, goal)
+    out = np.array(previous, np.float32, copy=True)
+    out[32:35] = (position[2] / cfg.altitude_scale, h / cfg.angle_scale, g / cfg.angle_scale)
+    return out
 
 
 def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
@@ -115,12 +161,13 @@ def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
             report.skip("corrupt record")
         if read.truncated or (read.skipped_bytes and not read.corrupt_chunks):
             report.skip(f"damaged or truncated log ({read.skipped_bytes} bytes unreadable)")
+        commands = body_commands(path)
         for ep in episodes:
             if not ep.complete:
                 report.skip(f"incomplete: {ep.problem}")
                 continue
             try:
-                tr = rebuild_episode(ep, config)
+                tr = rebuild_episode(ep, config, commands)
             except (ValueError, AttributeError) as exc:
                 report.skip(f"inconsistent: {exc}")
                 continue

@@ -218,6 +218,10 @@ class SimNode:
                                  s.steps, c)
             if outcome is not None:
                 break
+        # The terminal pose, for logs (training from logs needs it; only the recorder
+        # listens to truth, so the lockstep chain is untouched).
+        self.pub[keys.TRUTH].put(m.odometry(truth.position, truth.velocity,
+                                            quat_from_matrix(truth.rotation), self._stamp()))
         self.pub[keys.EPISODE].put(m.episode_end(i, outcome, s.steps, self._stamp(), seed,
                                                  c.scenario))
         length = float(np.sum(np.linalg.norm(np.diff(np.array(path), axis=0), axis=1)))

@@ -35,6 +35,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
+    if args.from_logs:
+        from policy.offline import train_from_logs
+
+        summary = train_from_logs([Path(p) for p in args.from_logs], Path(args.out),
+                                  reward=args.reward, updates=args.updates, seed=args.seed,
+                                  bc=args.bc, init_actor=args.init_actor)
+        print(json.dumps(summary, indent=2))
+        return 0
     from policy.train import TrainConfig, Trainer
 
     config = TrainConfig(algo=args.algo, reward=args.reward, scenario=args.scenario,
@@ -102,6 +110,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start-steps", type=int, default=10_000,
                    help="initial uniformly random steps (abr-method.md: 10,000)")
     p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--from-logs", nargs="+", metavar="LOG",
+                   help="learn offline from episode logs (MCAP files or run directories)")
+    p.add_argument("--updates", type=int, default=10_000, help="with --from-logs: TD3 updates")
+    p.add_argument("--bc", action="store_true", help="with --from-logs: TD3+BC")
+    p.add_argument("--init-actor", help="with --from-logs: start from this actor file")
     p.set_defaults(func=_cmd_train)
 
     p = sub.add_parser("eval", help="evaluate a policy: success/collision/timeout rates, 95%% CI")

@@ -111,11 +111,25 @@ def test_parity_actions_and_trajectory(runs, env_episodes):
         # Commands come from the bridge, events from the sim: the recorder may see the
         # last command after the END event, so commands are matched to steps by stamp.
         steps = [x.decode() for x in ep.topic("truth")]
-        assert len(steps) == ref["steps"]
+        assert len(steps) == ref["steps"] + 1  # one per step, plus the terminal pose
+        steps = steps[:-1]
         cmds = [m.twist_values(by_stamp[m.nanoseconds(t.header.stamp)]) for t in steps]
         np.testing.assert_array_equal(np.array(cmds, np.float32), ref["actions"])
         truth = np.array([m.odometry_values(t)[0] for t in steps])
         np.testing.assert_allclose(truth, ref["path"][: len(truth)], rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_stack_log_trains_from_logs(runs, env_episodes):
+    from policy.offline import load_logs
+    from policy.replay import ReplayBuffer
+    from policy.rewards import RewardConfig, make_goal_reward
+
+    _, mcap, _ = runs["peer"]
+    buf = ReplayBuffer(10_000, (3, 35), 4)
+    report = load_logs([mcap], buf, make_goal_reward("abr", RewardConfig()), RewardConfig())
+    assert report.episodes_used == EPISODES, report.skipped
+    assert report.transitions == sum(e["steps"] for e in env_episodes) == len(buf)
 
 
 @pytest.mark.slow
