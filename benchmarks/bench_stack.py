@@ -84,7 +84,7 @@ def run(quick: bool) -> dict:
         "stack_realtime_latency_ms_p50": rt.get("latency_ms_p50"),
         "stack_realtime_latency_ms_p99": rt.get("latency_ms_p99"),
         "stack_realtime_late_steps": rt.get("late_steps"),
-        "peers": {"env_steps_per_s": env_steps_per_s(1 if quick else 10)},
+        "peers": {"inprocess_env_shipped_policy_steps_per_s": env_steps_per_s(1 if quick else 10)},
     }
 
 
