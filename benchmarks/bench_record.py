@@ -9,7 +9,6 @@ publisher's full speed (``_max``) where drops show the recorder's ceiling.
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 import tempfile
@@ -22,14 +21,9 @@ from bus import messages as m
 from bus.log import EpisodeLogWriter
 from bus.record import Recorder
 from bus.session import Bus, SessionConfig, open_session
+from skyloop.launcher import free_port
 
 SCAN = np.random.default_rng(0).normal(scale=10, size=(28_800, 3)).astype(np.float32)
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def publish(hub: str, duration: float, rate: float) -> None:
@@ -59,7 +53,7 @@ def publish(hub: str, duration: float, rate: float) -> None:
 
 def measure(duration: float, rate: float) -> tuple[float, int, int]:
     """(scans/s written, dropped, lost) for one publisher run."""
-    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{_free_port()}")
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
     with tempfile.TemporaryDirectory() as tmp:
         rec_session = open_session(cfg)
         recorder = Recorder(rec_session, EpisodeLogWriter(tmp, "bench"))

@@ -6,16 +6,15 @@ loses at most the episode in progress."""
 from __future__ import annotations
 
 import os
-import socket
 import subprocess
 import sys
 import threading
-import time
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import pytest
+from loopback import free_port, wait_for
 from rosbags.highlevel import AnyReader
 
 from bus import keys
@@ -28,18 +27,6 @@ REPO = Path(__file__).resolve().parents[1]
 SCAN = np.random.default_rng(0).normal(scale=10, size=(28_800, 3)).astype(np.float32)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(cond, timeout=10.0, what="condition"):
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.01)
 
 
 class FakeRun:

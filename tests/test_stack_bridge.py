@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import socket
 import threading
-import time
 
 import numpy as np
 import pytest
+from loopback import free_port, wait_for
 
 from bus import keys
 from bus import messages as m
@@ -24,20 +24,6 @@ from mavlink_bridge.offboard_client import OffboardClientConfig
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
 from policy.node import PolicyNode
 from sitl.commander import Commander, VehicleSample
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_for(cond, timeout=10.0, what="condition"):
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.002)
 
 
 @pytest.fixture

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from loopback import free_port
 
 from bus import messages as m
 from bus.log_reader import EpisodeLogReader, read_episodes
@@ -29,11 +30,6 @@ from skyloop import launcher
 SEED, EPISODES = 1000, 2
 ROOT = Path(__file__).resolve().parent.parent
 
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def up_args(*extra: str) -> list[str]:
