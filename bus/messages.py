@@ -219,6 +219,12 @@ def odometry_values(msg: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             np.array([q.x, q.y, q.z, q.w]))
 
 
+def yaw_of(quaternion_xyzw) -> float:
+    """Yaw (rotation about z, rad, CCW from x) of a ROS ``(x, y, z, w)`` quaternion."""
+    x, y, z, w = (float(c) for c in quaternion_xyzw)
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 def twist_stamped(vx: float, vy: float, vz: float, yaw_rate: float, stamp_s: float,
                   frame_id: str = "world") -> Any:
     """Velocity command: linear (vx, vy, vz) in ``frame_id`` (world ENU), angular.z =

@@ -35,7 +35,6 @@ Commander time: wall seconds since the bridge started until the first odometry, 
 from __future__ import annotations
 
 import logging
-import math
 import os
 import queue
 import select
@@ -167,7 +166,7 @@ class BridgeNode:
         stamp = m.nanoseconds(msg.header.stamp)
         now = self._stack_time(stamp)
         (x, y, z), (vx, vy, vz), q = m.odometry_values(msg)
-        yaw = _yaw(*q)
+        yaw = m.yaw_of(q)
         self.link.update_telemetry(VehicleTelemetry(now, (x, y, z), (vx, vy, vz),
                                                     (0.0, 0.0, yaw)))
         if self.lockstep and str(self.commander.state) == "OFFBOARD":
@@ -231,5 +230,3 @@ class BridgeNode:
             os.close(fd)
 
 
-def _yaw(x: float, y: float, z: float, w: float) -> float:
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))

@@ -35,7 +35,13 @@ from tqdm import tqdm
 
 from bus.log import read_episodes
 from bus.log_reader import EpisodeLogReader
-from bus.messages import nanoseconds, observation_values, odometry_values, twist_values
+from bus.messages import (
+    nanoseconds,
+    observation_values,
+    odometry_values,
+    twist_values,
+    yaw_of,
+)
 from perception.observation import FrameStacker
 from policy.replay import ReplayBuffer
 from policy.rewards import RewardConfig, base_reward, collision_reward, make_goal_reward
@@ -136,9 +142,7 @@ def terminal_observation(previous: np.ndarray, position: np.ndarray, truth_msg,
 
     cfg = ObservationConfig()
     _, velocity, q = odometry_values(truth_msg.decode())
-    x, y, z, w = q
-    yaw = float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
-    h, g = goal_angles(position, yaw, velocity, goal)
+    h, g = goal_angles(position, yaw_of(q), velocity, goal)
     out = np.array(previous, np.float32, copy=True)
     out[32:35] = (position[2] / cfg.altitude_scale, h / cfg.angle_scale, g / cfg.angle_scale)
     return out

@@ -216,3 +216,11 @@ def test_msgdef_is_full_ros2_text():
     for dep in ("MSG: std_msgs/Header", "MSG: builtin_interfaces/Time", "MSG: geometry_msgs/Point"):
         assert dep in text
     assert "MSG: sensor_msgs/PointField" in m.msgdef(m.POINTCLOUD2)
+
+
+def test_yaw_of_quaternion():
+    import math
+
+    for yaw in (-3.0, -1.2, 0.0, 0.7, 2.9):
+        q = (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
+        assert m.yaw_of(q) == pytest.approx(yaw, abs=1e-12)
