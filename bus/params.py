@@ -1,0 +1,75 @@
+"""The vehicle's parameters: one table that the MAVLink side and the nodes share.
+
+Ground stations read and set these through the MAVLink parameter protocol
+(``mavlink_bridge.params``); the nodes that act on them (``sim``: commander and
+autopilot; ``perception``: the icosahedron radius) apply them when they change. Names
+follow PX4 where PX4 has the parameter (``COM_OF_LOSS_T``, ``MPC_XY_VEL_MAX``, ...) and
+use the ``SKY_`` prefix where it does not. Every name fits MAVLink's 16-character
+``param_id``. Pure: no I/O, no Zenoh.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class ParamDef:
+    """One parameter: name, default, closed range, MAVLink type and who applies it."""
+
+    name: str
+    default: float
+    minimum: float
+    maximum: float
+    kind: str  # "float" (MAV_PARAM_TYPE_REAL32) or "int" (MAV_PARAM_TYPE_INT32)
+    unit: str
+    applies_to: str  # "sim" or "perception"
+    doc: str
+
+
+PARAMS: tuple[ParamDef, ...] = (
+    ParamDef("COM_OF_LOSS_T", 1.0, 0.1, 60.0, "float", "s", "sim",
+             "offboard setpoint loss: this long without a setpoint -> HOLD (failsafe)"),
+    ParamDef("SKY_HOLD_LAND_T", 5.0, 0.0, 600.0, "float", "s", "sim",
+             "failsafe HOLD lasts this long, then LAND"),
+    ParamDef("MPC_XY_VEL_MAX", 2.0, 0.1, 20.0, "float", "m/s", "sim",
+             "maximum horizontal speed the autopilot flies"),
+    ParamDef("MPC_Z_VEL_MAX", 2.0, 0.1, 10.0, "float", "m/s", "sim",
+             "maximum vertical speed the autopilot flies (up and down)"),
+    ParamDef("GF_MAX_HOR_DIST", 60.0, 0.0, 10000.0, "float", "m", "sim",
+             "geofence: horizontal distance from home beyond which RTL (0: off)"),
+    ParamDef("SKY_FLIGHT_LVL", 3.5, 0.5, 100.0, "float", "m", "sim",
+             "flight level above ground for RTL and goals from the ground station"),
+    ParamDef("SKY_ICO_RADIUS", 4.0, 0.5, 50.0, "float", "m", "perception",
+             "truncated-icosahedron radius p_radius of the observation (eq. 3.1)"),
+)
+
+BY_NAME: dict[str, ParamDef] = {p.name: p for p in PARAMS}
+assert all(len(p.name) <= 16 for p in PARAMS)
+
+
+def defaults() -> dict[str, float]:
+    """Every parameter at its default."""
+    return {p.name: p.default for p in PARAMS}
+
+
+def check(name: str, value: float) -> float:
+    """``value`` for parameter ``name`` if valid (ints rounded exactly), else ValueError
+    naming the parameter and the problem."""
+    p = BY_NAME.get(name)
+    if p is None:
+        raise ValueError(f"unknown parameter {name!r}; known: {sorted(BY_NAME)}")
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: {value!r} is not a number") from None
+    if not math.isfinite(v):
+        raise ValueError(f"{name}: {v} is not finite")
+    if p.kind == "int":
+        if v != int(v):
+            raise ValueError(f"{name}: {v} is not an integer")
+        v = float(int(v))
+    if not p.minimum <= v <= p.maximum:
+        raise ValueError(f"{name}: {v:g} outside [{p.minimum:g}, {p.maximum:g}] {p.unit}")
+    return v
