@@ -166,3 +166,30 @@ def velocity_body_ned_to_flu(vx: float, vy: float, vz: float, yaw_rate: float) -
     """MAV_FRAME_BODY_NED (forward, right, down, yaw_rate) -> body-horizontal FLU + CCW rate."""
     f, left, u = frd_to_flu(vx, vy, vz)
     return (f, left, u, yaw_rate_ned_to_enu(yaw_rate))
+
+
+# ------------------------------------------------------------------ local <-> geodetic
+# The vehicle's local ENU origin sits at a geodetic point (VehicleLinkConfig.origin, PX4
+# SITL's default 47.397742 N, 8.545594 E, 488 m AMSL). Flat earth (equirectangular about
+# the origin, WGS-84 equatorial radius): error ~ d^2 / R, under a millimetre within 2 km,
+# far below what skyloop's scenarios span. Used for GLOBAL_POSITION_INT, GPS_RAW_INT,
+# HOME_POSITION, and to turn mission/fence/rally lat/lon into local goals.
+EARTH_RADIUS_M = 6378137.0
+Geodetic = tuple[float, float, float]  # latitude deg, longitude deg, altitude m AMSL
+
+
+def enu_to_geodetic(east: float, north: float, up: float, origin: Geodetic) -> Geodetic:
+    """Local ENU metres about ``origin`` -> (lat deg, lon deg, alt m AMSL), flat earth."""
+    lat0, lon0, alt0 = origin
+    lat = lat0 + math.degrees(north / EARTH_RADIUS_M)
+    lon = lon0 + math.degrees(east / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+    return (lat, lon, alt0 + up)
+
+
+def geodetic_to_enu(lat: float, lon: float, alt: float, origin: Geodetic) -> Vec3:
+    """(lat deg, lon deg, alt m AMSL) -> local ENU metres about ``origin`` (the inverse of
+    :func:`enu_to_geodetic`)."""
+    lat0, lon0, alt0 = origin
+    north = math.radians(lat - lat0) * EARTH_RADIUS_M
+    east = math.radians(lon - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+    return (east, north, alt - alt0)

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from mavlink_bridge import frames
+from mavlink_bridge.autopilot_version import autopilot_version
 from mavlink_bridge.interfaces import CommanderLike, VehicleTelemetry, VelocityCommand, Verdict
 from mavlink_bridge.modes import (
     BaseMode,
@@ -50,6 +51,7 @@ from mavlink_bridge.modes import (
     px4_mode_for_state,
     state_for_px4_mode,
 )
+from mavlink_bridge.params import ParamServer, default_params_file
 from mavlink_bridge.transport import Address, UdpEndpoint, mavlink
 from mavlink_bridge.validate import SetpointLimits, SetpointValidator
 
@@ -83,6 +85,11 @@ class VehicleLinkConfig:
     heartbeat_period: float = 1.0  # s
     telemetry_period: float = 0.1  # s, LOCAL_POSITION_NED and ATTITUDE
     limits: SetpointLimits = field(default_factory=SetpointLimits)
+    # Ground-station protocol (issue 5): the geodetic point of the local ENU origin
+    # (lat deg, lon deg, alt m AMSL; PX4 SITL's default), and the parameter file
+    # ("auto": mavlink_bridge.params.default_params_file(system_id); None: memory only).
+    origin: tuple[float, float, float] = (47.397742, 8.545594, 488.0)
+    params_file: str | None = "auto"
 
     @classmethod
     def for_instance(cls, instance: int, **kwargs: Any) -> VehicleLinkConfig:
@@ -136,6 +143,7 @@ class VehicleLink:
         self.handlers: dict[str, Callable[[UdpEndpoint, Any, Address, float], None]] = {
             "SET_POSITION_TARGET_LOCAL_NED": self._on_setpoint_msg,
             "COMMAND_LONG": self._on_command_long,
+            "COMMAND_INT": self._on_command_int,
         }
         self.commands: dict[int, Callable[[Any, float], int]] = {
             mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
@@ -144,7 +152,23 @@ class VehicleLink:
             mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
                 lambda msg, now: mav_result(self.commander.set_mode(now, "RTL")),
             mavlink.MAV_CMD_DO_SET_MODE: self._cmd_set_mode,
+            mavlink.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
+            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+                lambda msg, now: self._reply_after_ack(autopilot_version(c.system_id)),
         }
+        # REQUEST_MESSAGE: message id -> builder (None: nothing to send yet).
+        self.messages: dict[int, Callable[[float], Any | None]] = {
+            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: lambda now: autopilot_version(c.system_id),
+        }
+        self._after_ack: list[Any] = []  # sent to a command's sender after its ACK
+        self._cmd_link: UdpEndpoint | None = None  # the link the current command came on
+        params_file = default_params_file(c.system_id) if c.params_file == "auto" \
+            else c.params_file
+        self.params = ParamServer(self, params_file)
+        for kind, fn in (("PARAM_REQUEST_LIST", self.params.on_request_list),
+                         ("PARAM_REQUEST_READ", self.params.on_request_read),
+                         ("PARAM_SET", self.params.on_set)):
+            self.handlers[kind] = self._targeted(kind, fn)
         self._telemetry: VehicleTelemetry | None = None
         self._next_heartbeat: float | None = None
         self._next_telemetry: float | None = None
@@ -166,7 +190,12 @@ class VehicleLink:
             out.update({f"{name}.{k}": v for k, v in ep.counters.items()})
         out.update({f"setpoint.{k.value}": v for k, v in self.validator.rejected.items()})
         out["setpoint.accepted"] = self.validator.accepted
+        out.update({f"params.{k}": v for k, v in self.params.counters.items()})
         return out
+
+    def broadcast(self, msg: Any) -> None:
+        """Send ``msg`` on every link (to each link's current peer)."""
+        self._broadcast(msg)
 
     def update_telemetry(self, telemetry: VehicleTelemetry) -> None:
         """The vehicle state to report from now on (ENU/FLU, see the dataclass)."""
@@ -258,12 +287,31 @@ class VehicleLink:
         if isinstance(result, VelocityCommand) and self.on_setpoint is not None:
             self.on_setpoint(result, now)
 
+    def _for_us(self, msg: Any) -> bool:
+        c = self.config
+        return msg.target_system in (0, c.system_id) and \
+            msg.target_component in (0, c.component_id)
+
+    def _targeted(self, kind: str, fn: Callable[[Any, float], list[Any]]) -> Callable[
+            [UdpEndpoint, Any, Address, float], None]:
+        """A handler for a protocol service: ignore (and count) messages for other
+        systems, send the service's replies back to the sender."""
+        def handler(ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
+            if not self._for_us(msg):
+                self._counters[f"{kind.lower()}.other_target"] += 1
+                return
+            for reply in fn(msg, now):
+                ep.send(reply, addr)
+        return handler
+
     def _on_command_long(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
         c = self.config
         if msg.target_system != c.system_id or msg.target_component not in (0, c.component_id):
             self._counters["cmd.other_target"] += 1
             return
         handler = self.commands.get(msg.command)
+        self._after_ack.clear()
+        self._cmd_link = ep
         if handler is None:  # one counter for all unknown ids: the key set stays bounded
             result = mavlink.MAV_RESULT_UNSUPPORTED
             self._counters["cmd.unsupported"] += 1
@@ -273,7 +321,32 @@ class VehicleLink:
         ep.send(mavlink.MAVLink_command_ack_message(
             msg.command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), addr)
         if result == mavlink.MAV_RESULT_ACCEPTED:
+            for reply in self._after_ack:  # e.g. the message REQUEST_MESSAGE asked for
+                ep.send(reply, addr)
             self._send_due(now)  # the heartbeat shows a new mode/arming state at once
+        self._after_ack.clear()
+
+    def _on_command_int(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
+        """COMMAND_INT as COMMAND_LONG: param5/6 are the integer x/y, param7 is z."""
+        self._on_command_long(ep, _CommandIntAsLong(msg), addr, now)
+
+    def _reply_after_ack(self, msg: Any) -> int:
+        self._after_ack.append(msg)
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_request_message(self, msg: Any, now: float) -> int:
+        """MAV_CMD_REQUEST_MESSAGE: param1 = message id; ACK, then the message."""
+        msg_id = msg.param1
+        builder = self.messages.get(int(msg_id)) if math.isfinite(msg_id) and \
+            msg_id == int(msg_id) else None
+        if builder is None:
+            self._counters["request_message.unsupported"] += 1
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        reply = builder(now)
+        if reply is None:  # e.g. HOME_POSITION before any telemetry
+            self._counters["request_message.unavailable"] += 1
+            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        return self._reply_after_ack(reply)
 
     def _cmd_arm_disarm(self, msg: Any, now: float) -> int:
         if msg.param1 == 1.0:
@@ -297,3 +370,22 @@ class VehicleLink:
         if state is None:
             return mavlink.MAV_RESULT_UNSUPPORTED
         return mav_result(self.commander.set_mode(now, state))
+
+
+class _CommandIntAsLong:
+    """A COMMAND_INT seen through COMMAND_LONG's field names (param5/6 = x/y as sent)."""
+
+    def __init__(self, msg: Any) -> None:
+        self._msg = msg
+        self.command, self.target_system = msg.command, msg.target_system
+        self.target_component = msg.target_component
+        self.param1, self.param2, self.param3, self.param4 = (
+            msg.param1, msg.param2, msg.param3, msg.param4)
+        self.param5, self.param6, self.param7 = float(msg.x), float(msg.y), msg.z
+        self.frame = msg.frame
+
+    def get_srcSystem(self) -> int:  # noqa: N802 (pymavlink's name)
+        return int(self._msg.get_srcSystem())
+
+    def get_srcComponent(self) -> int:  # noqa: N802
+        return int(self._msg.get_srcComponent())

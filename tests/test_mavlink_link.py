@@ -168,7 +168,7 @@ def test_gcs_sees_px4_heartbeat_commands_and_telemetry(gcs: mavutil.mavfile) -> 
             assert recv(gcs, "COMMAND_ACK").result == result
         gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0, 0, 0, 0, 0,
                                   0, 0, 0)
-        gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, 148, 0, 0, 0,
+        gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_DO_SET_SERVO, 0, 1, 1500, 0, 0,
                                   0, 0, 0)
         rig.tick()
         assert recv(gcs, "COMMAND_ACK").result == mavlink.MAV_RESULT_UNSUPPORTED
