@@ -15,7 +15,9 @@ flips are exact, so rounding an action to float32 reproduces what arrives).
 Driving it: :meth:`OffboardClient.poll` is non-blocking (drain the socket, track the
 vehicle's heartbeat/acks/telemetry, re-send the latest setpoint every
 ``setpoint_period`` while streaming -- MAVSDK does that at 20 Hz from a thread -- and send
-our own heartbeat). The actions (:meth:`~OffboardClient.arm`, :meth:`~OffboardClient.
+our own heartbeat). With ``security.secret_key`` set (the vehicle's key) everything it sends
+is signed and only signed vehicle traffic is believed (:mod:`mavlink_bridge.security`).
+The actions (:meth:`~OffboardClient.arm`, :meth:`~OffboardClient.
 takeoff`, :meth:`~OffboardClient.start_offboard`, :meth:`~OffboardClient.land`, ...) block
 until the vehicle's COMMAND_ACK (retrying like MAVSDK) and raise :class:`CommandRejected`
 or :class:`CommandTimeout`. While they wait they poll and, between polls, call ``spin()``
@@ -36,6 +38,7 @@ from typing import Any
 from mavlink_bridge import frames
 from mavlink_bridge.interfaces import VelocityCommand
 from mavlink_bridge.modes import AUTO_LOITER, OFFBOARD, BaseMode, Px4Mode, is_armed
+from mavlink_bridge.security import LinkSecurity
 from mavlink_bridge.transport import Address, UdpEndpoint, mavlink
 from mavlink_bridge.validate import MASK_VELOCITY_YAW_RATE, MAV_FRAME_BODY_NED, MAV_FRAME_LOCAL_NED
 
@@ -74,6 +77,7 @@ class OffboardClientConfig:
     mode_timeout: float = 3.0  # heartbeat must show OFFBOARD within this (MAVSDK: 3 s)
     heartbeat_period: float = 1.0
     link_timeout: float = 3.0  # no vehicle heartbeat this long: disconnected
+    security: LinkSecurity | None = None  # signing key (as the vehicle's), --expose
 
 
 class OffboardClient:
@@ -86,7 +90,8 @@ class OffboardClient:
         self.clock = clock
         self.spin = spin
         self.endpoint = UdpEndpoint((c.listen_host, c.listen_port), None, c.system_id,
-                                    c.component_id, name="offboard", follow_sender=False)
+                                    c.component_id, name="offboard", follow_sender=False,
+                                    security=c.security)
         self.vehicle: Address | None = None
         self.vehicle_system = c.target_system
         self.mode: Px4Mode | None = None

@@ -12,11 +12,21 @@ Decoding rules (a frame never spans UDP datagrams, so nothing carries over):
   (``rx_bad_prefix``, ``rx_bad_crc``, ``rx_bad_length``, ``rx_bad_signature``,
   ``rx_bad_data``, ``rx_unknown_msg_id``, ``rx_truncated`` for a partial frame left at
   the end of a datagram, ``rx_parse_error`` for anything pymavlink raises), never raised;
-* good messages are returned with the sender's address; ``rx_msgs`` counts them.
+* a frame whose payload is longer than its message defines (pymavlink would cut it
+  silently) is refused as ``rx_bad_length``; a shorter one is MAVLink 2's trailing-zero
+  truncation and is accepted (zero-filled);
+* security (:class:`~mavlink_bridge.security.LinkSecurity`): signature refusals are
+  counted as ``rx_unsigned``, ``rx_bad_signature``, ``rx_replay``, ``rx_stale_timestamp``
+  (accepted: ``rx_signed``, ``rx_unsigned_accepted``); refusals by sender as ``rx_own_id``
+  and ``rx_sysid_not_allowed``. None of these is returned, and none moves the peer;
+* good messages are returned with the sender's address; ``rx_msgs`` counts them. With
+  ``follow_sender`` only *trusted* ones (signed when signing, from a listed system when
+  there is an allow-list) make their sender the new peer.
 
 The common dialect of ``pymavlink.dialects.v20`` is imported directly (MAVLink 2 framing
-whatever ``MAVLINK20`` says); nothing here imports ``mavutil``. Signing (issue 5) hooks in
-at :attr:`UdpEndpoint.mav` (``mav.signing``) for both directions.
+whatever ``MAVLINK20`` says); nothing here imports ``mavutil``. The parser/encoder is
+:class:`~mavlink_bridge.security.SigningMAVLink` (pymavlink's, with our signature policy);
+binding beyond loopback needs ``LinkSecurity(expose=True)``.
 """
 
 from __future__ import annotations
@@ -29,6 +39,14 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink
 
+from mavlink_bridge.security import (
+    SIGNATURE_REJECT_PREFIX,
+    LinkSecurity,
+    SignatureVerdict,
+    SigningMAVLink,
+    check_bind,
+)
+
 log = logging.getLogger(__name__)
 
 Address = tuple[str, int]
@@ -37,6 +55,8 @@ _MAX_DATAGRAM = 65535
 
 
 def _classify(reason: str) -> str:
+    if reason.startswith(SIGNATURE_REJECT_PREFIX):
+        return "rx_" + reason[len(SIGNATURE_REJECT_PREFIX):]
     r = reason.lower()
     for key, name in (("prefix", "rx_bad_prefix"), ("crc", "rx_bad_crc"),
                       ("length", "rx_bad_length"), ("signature", "rx_bad_signature")):
@@ -49,13 +69,17 @@ class UdpEndpoint:
     """A bound, non-blocking UDP socket speaking MAVLink 2 as ``system_id/component_id``.
 
     ``remote`` is where unsolicited traffic goes until someone speaks to us; with
-    ``follow_sender`` (PX4's behaviour) the latest sender becomes the destination.
+    ``follow_sender`` (PX4's behaviour) the latest trusted sender becomes the
+    destination. ``security``: signing, allow-list, binding (default: none, loopback).
     """
 
     def __init__(self, local: Address, remote: Address | None, system_id: int,
-                 component_id: int, name: str = "link", follow_sender: bool = True) -> None:
+                 component_id: int, name: str = "link", follow_sender: bool = True,
+                 security: LinkSecurity | None = None) -> None:
         self.name = name
         self.follow_sender = follow_sender
+        self.security = security or LinkSecurity()
+        check_bind(local[0], self.security.expose, f"MAVLink link {name!r}")
         self.counters: Counter[str] = Counter()
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -67,8 +91,8 @@ class UdpEndpoint:
         self.address: Address = self.sock.getsockname()[:2]
         self.remote = remote
         self.peer: Address | None = remote
-        self.mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
-        self.mav.robust_parsing = True
+        self.own_id = (system_id, component_id)
+        self.mav = SigningMAVLink(system_id, component_id, self.security)
         self._closed = False
 
     # ------------------------------------------------------------------ send
@@ -108,13 +132,13 @@ class UdpEndpoint:
                 raise
             self.counters["rx_datagrams"] += 1
             msgs = self.decode(data)
-            if msgs and self.follow_sender:
+            if self.follow_sender and any(self.security.trusted_sender(m) for m in msgs):
                 self.peer = addr[:2]
             out.extend((m, addr[:2]) for m in msgs)
         return out
 
     def decode(self, data: bytes) -> list[Any]:
-        """Decode one datagram; bad parts are counted, good messages returned."""
+        """Decode one datagram; bad or refused parts are counted, good messages returned."""
         mav = self.mav
         # Fresh parser state per datagram (pymavlink keeps partial frames otherwise).
         mav.buf = bytearray()
@@ -127,12 +151,20 @@ class UdpEndpoint:
             self.counters["rx_parse_error"] += 1
             log.debug("%s: parse error %s", self.name, exc)
             msgs = []
+        security = self.security
         for m in msgs:
             if isinstance(m, mavlink.MAVLink_bad_data):
                 self.counters[_classify(str(getattr(m, "reason", "")))] += 1
             elif isinstance(m, mavlink.MAVLink_unknown):
                 self.counters["rx_unknown_msg_id"] += 1
+            elif m.get_header().mlen > type(m).unpacker.size:
+                self.counters["rx_bad_length"] += 1
+            elif (refusal := security.sender_refusal(m, self.own_id)) is not None:
+                self.counters["rx_" + refusal] += 1
             else:
+                if security.signing:
+                    self.counters["rx_signed" if m.get_signed() else
+                                  "rx_" + SignatureVerdict.UNSIGNED_ACCEPTED.value] += 1
                 good.append(m)
         if mav.buf_len() > 0:
             self.counters["rx_truncated"] += 1

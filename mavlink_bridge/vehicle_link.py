@@ -52,6 +52,7 @@ from mavlink_bridge.modes import (
     state_for_px4_mode,
 )
 from mavlink_bridge.params import ParamServer, default_params_file
+from mavlink_bridge.security import LinkSecurity
 from mavlink_bridge.transport import Address, UdpEndpoint, mavlink
 from mavlink_bridge.validate import SetpointLimits, SetpointValidator
 
@@ -90,6 +91,7 @@ class VehicleLinkConfig:
     # ("auto": mavlink_bridge.params.default_params_file(system_id); None: memory only).
     origin: tuple[float, float, float] = (47.397742, 8.545594, 488.0)
     params_file: str | None = "auto"
+    security: LinkSecurity | None = None  # signing, allow-list, --expose (both links)
 
     @classmethod
     def for_instance(cls, instance: int, **kwargs: Any) -> VehicleLinkConfig:
@@ -134,8 +136,8 @@ class VehicleLink:
                 if lc is not None:
                     self.endpoints[name] = UdpEndpoint(
                         (lc.local_host, lc.local_port), (lc.remote_host, lc.remote_port),
-                        c.system_id, c.component_id, name=name)
-        except OSError:
+                        c.system_id, c.component_id, name=name, security=c.security)
+        except (OSError, ValueError):
             self.close()
             raise
         # Extension points (parameters, missions, REQUEST_MESSAGE, ... of issue 5):
