@@ -52,7 +52,8 @@ def secure_rig(security: LinkSecurity, api_port: int | None, gcs_port: int,
     rig = Rig(api_port, gcs_port, clock)
     rig.link.close()
     cfg = VehicleLinkConfig(api=None if api_port is None else LinkConfig(0, api_port),
-                            gcs=LinkConfig(0, gcs_port), security=security)
+                            gcs=LinkConfig(0, gcs_port), security=security,
+                            params_file=None)
     rig.link = VehicleLink(rig.commander, cfg, on_setpoint=rig._on_setpoint)
     return rig
 
