@@ -159,11 +159,11 @@ class ParamServer:
             name.encode("ascii"), encode_value(p.kind, self.values[name]), PARAM_TYPE[p.kind],
             len(self._names), self._names.index(name))
 
-    def on_request_list(self, msg: Any, now: float) -> list[Any]:
+    def on_request_list(self, msg: Any, now: float, partner: object = None) -> list[Any]:
         self.counters["list"] += 1
         return [self.value_message(n) for n in self._names]
 
-    def on_request_read(self, msg: Any, now: float) -> list[Any]:
+    def on_request_read(self, msg: Any, now: float, partner: object = None) -> list[Any]:
         name = _param_id(msg.param_id)
         if msg.param_index >= 0:
             name = self._names[msg.param_index] if msg.param_index < len(self._names) else ""
@@ -175,7 +175,7 @@ class ParamServer:
         self.counters["read"] += 1
         return [self.value_message(name)]
 
-    def on_set(self, msg: Any, now: float) -> list[Any]:
+    def on_set(self, msg: Any, now: float, partner: object = None) -> list[Any]:
         name = _param_id(msg.param_id)
         p = table.BY_NAME.get(name)
         if p is None:

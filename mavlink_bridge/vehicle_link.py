@@ -44,6 +44,7 @@ from typing import Any
 from mavlink_bridge import frames
 from mavlink_bridge.autopilot_version import autopilot_version
 from mavlink_bridge.interfaces import CommanderLike, VehicleTelemetry, VelocityCommand, Verdict
+from mavlink_bridge.missions import MissionServer
 from mavlink_bridge.modes import (
     BaseMode,
     Px4Mode,
@@ -167,10 +168,21 @@ class VehicleLink:
         params_file = default_params_file(c.system_id) if c.params_file == "auto" \
             else c.params_file
         self.params = ParamServer(self, params_file)
+        self.missions = MissionServer(self)
+        mi = self.missions
         for kind, fn in (("PARAM_REQUEST_LIST", self.params.on_request_list),
                          ("PARAM_REQUEST_READ", self.params.on_request_read),
-                         ("PARAM_SET", self.params.on_set)):
+                         ("PARAM_SET", self.params.on_set),
+                         ("MISSION_REQUEST_LIST", mi.on_request_list),
+                         ("MISSION_REQUEST_INT", mi.on_request_item),
+                         ("MISSION_REQUEST", mi.on_request_item),
+                         ("MISSION_ACK", mi.on_ack), ("MISSION_COUNT", mi.on_count),
+                         ("MISSION_ITEM_INT", mi.on_item), ("MISSION_ITEM", mi.on_item),
+                         ("MISSION_CLEAR_ALL", mi.on_clear_all),
+                         ("MISSION_SET_CURRENT", mi.on_set_current_msg)):
             self.handlers[kind] = self._targeted(kind, fn)
+        self.commands[mavlink.MAV_CMD_DO_SET_MISSION_CURRENT] = self._cmd_set_mission_current
+        self.messages[mavlink.MAVLINK_MSG_ID_MISSION_CURRENT] = mi.current_message
         self._telemetry: VehicleTelemetry | None = None
         self._next_heartbeat: float | None = None
         self._next_telemetry: float | None = None
@@ -193,6 +205,7 @@ class VehicleLink:
         out.update({f"setpoint.{k.value}": v for k, v in self.validator.rejected.items()})
         out["setpoint.accepted"] = self.validator.accepted
         out.update({f"params.{k}": v for k, v in self.params.counters.items()})
+        out.update({f"mission.{k}": v for k, v in self.missions.counters.items()})
         return out
 
     def broadcast(self, msg: Any) -> None:
@@ -222,6 +235,8 @@ class VehicleLink:
                     self._counters["handler_error"] += 1
                     if self._counters["handler_error"] & (self._counters["handler_error"] - 1) == 0:
                         log.exception("error handling %s from %s", msg.get_type(), addr)
+        for (ep, addr), msg in self.missions.poll(now):  # upload retries and timeouts
+            ep.send(msg, addr)
         self._send_due(now)
         return handled
 
@@ -294,15 +309,16 @@ class VehicleLink:
         return msg.target_system in (0, c.system_id) and \
             msg.target_component in (0, c.component_id)
 
-    def _targeted(self, kind: str, fn: Callable[[Any, float], list[Any]]) -> Callable[
+    def _targeted(self, kind: str, fn: Callable[[Any, float, Any], list[Any]]) -> Callable[
             [UdpEndpoint, Any, Address, float], None]:
         """A handler for a protocol service: ignore (and count) messages for other
-        systems, send the service's replies back to the sender."""
+        systems, send the service's replies back to the sender. The service gets the
+        sender as an opaque ``partner`` ``(endpoint, address)`` for later sends."""
         def handler(ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
             if not self._for_us(msg):
                 self._counters[f"{kind.lower()}.other_target"] += 1
                 return
-            for reply in fn(msg, now):
+            for reply in fn(msg, now, (ep, addr)):
                 ep.send(reply, addr)
         return handler
 
@@ -335,6 +351,11 @@ class VehicleLink:
     def _reply_after_ack(self, msg: Any) -> int:
         self._after_ack.append(msg)
         return mavlink.MAV_RESULT_ACCEPTED
+
+    def _cmd_set_mission_current(self, msg: Any, now: float) -> int:
+        seq = msg.param1
+        ok = math.isfinite(seq) and seq == int(seq) and self.missions.set_current(int(seq))
+        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
 
     def _cmd_request_message(self, msg: Any, now: float) -> int:
         """MAV_CMD_REQUEST_MESSAGE: param1 = message id; ACK, then the message."""
