@@ -12,9 +12,11 @@ until someone speaks, it sends to its configured remote.
 
 Driving it: :meth:`VehicleLink.poll` is non-blocking and does all the work for one
 instant ``now`` (seconds on the vehicle's clock, simulated or wall): drain both sockets,
-handle every message, then send what is due (heartbeat every ``heartbeat_period`` and at
-once when the reported mode/arming/status changes; LOCAL_POSITION_NED + ATTITUDE every
-``telemetry_period`` from the latest :class:`VehicleTelemetry`). No threads and no clock
+handle every message, then send what is due on each link (heartbeat every
+``heartbeat_period`` and at once when the reported mode/arming/status changes;
+LOCAL_POSITION_NED + ATTITUDE every ``telemetry_period`` and the rest of the PX4-like
+telemetry set at the rates of :mod:`mavlink_bridge.rates`, from the latest
+:class:`VehicleTelemetry` and the commander). No threads and no clock
 reads, so a lockstep simulator calls it once per control step and gets the same
 behaviour every run; a real-time node calls it from its loop (or after ``select`` on
 :meth:`VehicleLink.fileno` values).
@@ -29,7 +31,17 @@ and delivered to ``on_setpoint(command, now)``. Every refusal and every bad fram
 counted (:attr:`VehicleLink.counters`); nothing received can raise out of :meth:`poll`.
 Commander events reach ground stations through :meth:`VehicleLink.statustext`.
 Further messages and commands plug in through :attr:`VehicleLink.handlers` (message type
--> handler) and :attr:`VehicleLink.commands` (command id -> MAV_RESULT function).
+-> handler) and :attr:`VehicleLink.commands` (command id -> MAV_RESULT function); a
+command handler may queue a message to follow its COMMAND_ACK
+(:meth:`VehicleLink.reply_after_ack`). COMMAND_INT is handled as COMMAND_LONG.
+
+What ground stations expect on connect (issue 5) is installed by
+:mod:`mavlink_bridge.gcs_services`: REQUEST_MESSAGE / AUTOPILOT_VERSION, parameters
+(:attr:`VehicleLink.params`, ``on_change``), missions (:attr:`VehicleLink.missions`,
+``on_mission``, ``mission_current``, ``item_reached``), telemetry streams and their rates
+(:attr:`VehicleLink.rates`, SET/GET_MESSAGE_INTERVAL), TIMESYNC. The geodetic origin of
+the local frame is ``VehicleLinkConfig.origin``; home is the first position, then the
+position at arming (:meth:`VehicleLink.set_home` overrides).
 """
 
 from __future__ import annotations
@@ -41,18 +53,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from mavlink_bridge import frames
-from mavlink_bridge.autopilot_version import autopilot_version
+from mavlink_bridge.gcs_services import GroundStationServices
 from mavlink_bridge.interfaces import CommanderLike, VehicleTelemetry, VelocityCommand, Verdict
-from mavlink_bridge.missions import MissionServer
 from mavlink_bridge.modes import (
     BaseMode,
     Px4Mode,
-    base_mode_flags,
-    px4_mode_for_state,
     state_for_px4_mode,
 )
-from mavlink_bridge.params import ParamServer, default_params_file
 from mavlink_bridge.security import LinkSecurity
 from mavlink_bridge.transport import Address, UdpEndpoint, mavlink
 from mavlink_bridge.validate import SetpointLimits, SetpointValidator
@@ -155,39 +162,17 @@ class VehicleLink:
             mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
                 lambda msg, now: mav_result(self.commander.set_mode(now, "RTL")),
             mavlink.MAV_CMD_DO_SET_MODE: self._cmd_set_mode,
-            mavlink.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
-            mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
-                lambda msg, now: self._reply_after_ack(autopilot_version(c.system_id)),
-        }
-        # REQUEST_MESSAGE: message id -> builder (None: nothing to send yet).
-        self.messages: dict[int, Callable[[float], Any | None]] = {
-            mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION: lambda now: autopilot_version(c.system_id),
         }
         self._after_ack: list[Any] = []  # sent to a command's sender after its ACK
-        self._cmd_link: UdpEndpoint | None = None  # the link the current command came on
-        params_file = default_params_file(c.system_id) if c.params_file == "auto" \
-            else c.params_file
-        self.params = ParamServer(self, params_file)
-        self.missions = MissionServer(self)
-        mi = self.missions
-        for kind, fn in (("PARAM_REQUEST_LIST", self.params.on_request_list),
-                         ("PARAM_REQUEST_READ", self.params.on_request_read),
-                         ("PARAM_SET", self.params.on_set),
-                         ("MISSION_REQUEST_LIST", mi.on_request_list),
-                         ("MISSION_REQUEST_INT", mi.on_request_item),
-                         ("MISSION_REQUEST", mi.on_request_item),
-                         ("MISSION_ACK", mi.on_ack), ("MISSION_COUNT", mi.on_count),
-                         ("MISSION_ITEM_INT", mi.on_item), ("MISSION_ITEM", mi.on_item),
-                         ("MISSION_CLEAR_ALL", mi.on_clear_all),
-                         ("MISSION_SET_CURRENT", mi.on_set_current_msg)):
-            self.handlers[kind] = self._targeted(kind, fn)
-        self.commands[mavlink.MAV_CMD_DO_SET_MISSION_CURRENT] = self._cmd_set_mission_current
-        self.messages[mavlink.MAVLINK_MSG_ID_MISSION_CURRENT] = mi.current_message
-        self._telemetry: VehicleTelemetry | None = None
-        self._next_heartbeat: float | None = None
-        self._next_telemetry: float | None = None
-        self._last_reported: tuple[int, int, int] | None = None
-        self._now = 0.0
+        self.command_link: UdpEndpoint | None = None  # the link the current command came on
+        # Ground-station protocol (issue 5): parameters, missions, streams, requests.
+        self.services = GroundStationServices(self)
+        self.services.install()
+        self.params = self.services.params
+        self.missions = self.services.missions
+        self.reporter = self.services.reporter
+        self.rates = self.services.rates
+        self.messages = self.services.messages
 
     # ------------------------------------------------------------------ public
     def address(self, name: str) -> Address:
@@ -204,8 +189,7 @@ class VehicleLink:
             out.update({f"{name}.{k}": v for k, v in ep.counters.items()})
         out.update({f"setpoint.{k.value}": v for k, v in self.validator.rejected.items()})
         out["setpoint.accepted"] = self.validator.accepted
-        out.update({f"params.{k}": v for k, v in self.params.counters.items()})
-        out.update({f"mission.{k}": v for k, v in self.missions.counters.items()})
+        out.update(self.services.all_counters())
         return out
 
     def broadcast(self, msg: Any) -> None:
@@ -214,7 +198,11 @@ class VehicleLink:
 
     def update_telemetry(self, telemetry: VehicleTelemetry) -> None:
         """The vehicle state to report from now on (ENU/FLU, see the dataclass)."""
-        self._telemetry = telemetry
+        self.reporter.update(telemetry)
+
+    def set_home(self, position: tuple[float, float, float]) -> None:
+        """Home (local ENU) from now on (default: first position, then each arming)."""
+        self.reporter.set_home(position)
 
     def statustext(self, text: str, severity: str | int = "info") -> None:
         """Send a STATUSTEXT (truncated to 50 bytes) on every link."""
@@ -224,7 +212,6 @@ class VehicleLink:
 
     def poll(self, now: float) -> int:
         """Handle everything waiting, then send what is due at ``now``; messages handled."""
-        self._now = now
         handled = 0
         for ep in self.endpoints.values():
             for msg, addr in ep.receive():
@@ -235,9 +222,7 @@ class VehicleLink:
                     self._counters["handler_error"] += 1
                     if self._counters["handler_error"] & (self._counters["handler_error"] - 1) == 0:
                         log.exception("error handling %s from %s", msg.get_type(), addr)
-        for (ep, addr), msg in self.missions.poll(now):  # upload retries and timeouts
-            ep.send(msg, addr)
-        self._send_due(now)
+        self.services.poll(now)  # mission upload retries, then every stream due
         return handled
 
     def fileno(self) -> list[int]:
@@ -259,38 +244,6 @@ class VehicleLink:
         for ep in self.endpoints.values():
             ep.send(msg)
 
-    def _heartbeat_fields(self) -> tuple[int, int, int]:
-        cmd = self.commander
-        mode = px4_mode_for_state(str(cmd.state))
-        if cmd.failsafe:
-            status = mavlink.MAV_STATE_CRITICAL
-        elif cmd.armed:
-            status = mavlink.MAV_STATE_ACTIVE
-        else:
-            status = mavlink.MAV_STATE_STANDBY
-        return base_mode_flags(cmd.armed, mode), mode.custom_mode, status
-
-    def _send_due(self, now: float) -> None:
-        c = self.config
-        fields = self._heartbeat_fields()
-        if self._next_heartbeat is None or now >= self._next_heartbeat or \
-                fields != self._last_reported:
-            base, custom, status = fields
-            self._broadcast(mavlink.MAVLink_heartbeat_message(
-                mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base, custom, status, 3))
-            self._last_reported = fields
-            self._next_heartbeat = now + c.heartbeat_period
-        t = self._telemetry
-        if t is not None and (self._next_telemetry is None or now >= self._next_telemetry):
-            self._next_telemetry = now + c.telemetry_period
-            ms = int(round(t.time * 1000.0)) & 0xFFFFFFFF
-            x, y, z = frames.enu_to_ned(*t.position)
-            vx, vy, vz = frames.enu_to_ned(*t.velocity)
-            self._broadcast(mavlink.MAVLink_local_position_ned_message(ms, x, y, z, vx, vy, vz))
-            roll, pitch, yaw = frames.euler_enu_to_ned(*t.attitude)
-            p, q, r = frames.body_rates_flu_to_frd(*t.body_rates)
-            self._broadcast(mavlink.MAVLink_attitude_message(ms, roll, pitch, yaw, p, q, r))
-
     # ------------------------------------------------------------------ incoming
     def _handle(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
         kind = msg.get_type()
@@ -304,24 +257,6 @@ class VehicleLink:
         if isinstance(result, VelocityCommand) and self.on_setpoint is not None:
             self.on_setpoint(result, now)
 
-    def _for_us(self, msg: Any) -> bool:
-        c = self.config
-        return msg.target_system in (0, c.system_id) and \
-            msg.target_component in (0, c.component_id)
-
-    def _targeted(self, kind: str, fn: Callable[[Any, float, Any], list[Any]]) -> Callable[
-            [UdpEndpoint, Any, Address, float], None]:
-        """A handler for a protocol service: ignore (and count) messages for other
-        systems, send the service's replies back to the sender. The service gets the
-        sender as an opaque ``partner`` ``(endpoint, address)`` for later sends."""
-        def handler(ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
-            if not self._for_us(msg):
-                self._counters[f"{kind.lower()}.other_target"] += 1
-                return
-            for reply in fn(msg, now, (ep, addr)):
-                ep.send(reply, addr)
-        return handler
-
     def _on_command_long(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
         c = self.config
         if msg.target_system != c.system_id or msg.target_component not in (0, c.component_id):
@@ -329,7 +264,7 @@ class VehicleLink:
             return
         handler = self.commands.get(msg.command)
         self._after_ack.clear()
-        self._cmd_link = ep
+        self.command_link = ep
         if handler is None:  # one counter for all unknown ids: the key set stays bounded
             result = mavlink.MAV_RESULT_UNSUPPORTED
             self._counters["cmd.unsupported"] += 1
@@ -341,35 +276,17 @@ class VehicleLink:
         if result == mavlink.MAV_RESULT_ACCEPTED:
             for reply in self._after_ack:  # e.g. the message REQUEST_MESSAGE asked for
                 ep.send(reply, addr)
-            self._send_due(now)  # the heartbeat shows a new mode/arming state at once
+            self.services.send_due(now)  # the heartbeat shows a new mode/arming at once
         self._after_ack.clear()
 
     def _on_command_int(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
         """COMMAND_INT as COMMAND_LONG: param5/6 are the integer x/y, param7 is z."""
         self._on_command_long(ep, _CommandIntAsLong(msg), addr, now)
 
-    def _reply_after_ack(self, msg: Any) -> int:
+    def reply_after_ack(self, msg: Any) -> int:
+        """For a command handler: send ``msg`` to the sender after the ACK; ACCEPTED."""
         self._after_ack.append(msg)
         return mavlink.MAV_RESULT_ACCEPTED
-
-    def _cmd_set_mission_current(self, msg: Any, now: float) -> int:
-        seq = msg.param1
-        ok = math.isfinite(seq) and seq == int(seq) and self.missions.set_current(int(seq))
-        return mavlink.MAV_RESULT_ACCEPTED if ok else mavlink.MAV_RESULT_DENIED
-
-    def _cmd_request_message(self, msg: Any, now: float) -> int:
-        """MAV_CMD_REQUEST_MESSAGE: param1 = message id; ACK, then the message."""
-        msg_id = msg.param1
-        builder = self.messages.get(int(msg_id)) if math.isfinite(msg_id) and \
-            msg_id == int(msg_id) else None
-        if builder is None:
-            self._counters["request_message.unsupported"] += 1
-            return mavlink.MAV_RESULT_UNSUPPORTED
-        reply = builder(now)
-        if reply is None:  # e.g. HOME_POSITION before any telemetry
-            self._counters["request_message.unavailable"] += 1
-            return mavlink.MAV_RESULT_TEMPORARILY_REJECTED
-        return self._reply_after_ack(reply)
 
     def _cmd_arm_disarm(self, msg: Any, now: float) -> int:
         if msg.param1 == 1.0:

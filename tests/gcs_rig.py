@@ -35,8 +35,9 @@ class GcsRig:
         self.pos = [3.0, 4.0, 0.0]  # ENU
         self.vel = [0.0, 0.0, 0.0]
         self.yaw = 0.3
+        config.setdefault("api", None)
         self.link = VehicleLink(self.commander, VehicleLinkConfig(
-            api=None, gcs=LinkConfig(0, port), params_file=params_file, **config))
+            gcs=LinkConfig(0, port), params_file=params_file, **config))
         self.tick()
         assert self.wait("HEARTBEAT") is not None  # the GCS now knows where to send
 
@@ -59,6 +60,8 @@ class GcsRig:
                                                        self.pos[2]))
             self.vel[2] = out.vz if self.commander.armed else 0.0
             self.pos[2] = max(0.0, self.pos[2] + self.vel[2] * DT)
+            if self.pos[2] == 0.0:  # on the ground
+                self.vel[2] = max(0.0, self.vel[2])
             self.link.update_telemetry(self.telemetry())
             for e in self.commander.pop_events():
                 self.link.statustext(e.text, e.severity)
@@ -75,8 +78,11 @@ class GcsRig:
         self.drain()
         if send is not None:
             self.gcs.mav.send(send)
-        self.tick(ticks)
-        return self.drain()
+        out = []
+        for _ in range(ticks):  # drain every tick: the socket buffer holds only so much
+            self.tick()
+            out.extend(self.drain())
+        return out
 
     def wait(self, kind: str, timeout: float = 2.0) -> Any:
         return self.gcs.recv_match(type=kind, blocking=True, timeout=timeout)
