@@ -17,7 +17,8 @@ GPS is ideal and reported as such (3D fix, 10 satellites, HDOP 0.8, 0.5 m horizo
 accuracy); time fields (``time_boot_ms``/``time_usec``) are the telemetry's ``time``.
 Landed state (EXTENDED_SYS_STATE): TAKEOFF while the commander takes off, else ON_GROUND
 when its land detector says landed, LANDING in LAND, IN_AIR otherwise. SYS_STATUS
-reports gyro, accel, mag, baro, GPS, AHRS, battery and the control loops present,
+reports gyro, accel, mag, baro, GPS, AHRS, battery, geofence (unhealthy while the
+commander's ``failsafe_reason`` is ``"geofence"``) and the control loops present,
 enabled and healthy, and MAV_SYS_STATUS_PREARM_CHECK healthy when the vehicle can arm
 (or is armed) and no failsafe runs. VFR_HUD's airspeed is the ground speed (no wind
 estimate) and its throttle is 0 disarmed, 50 % armed (no motor model here).
@@ -42,7 +43,7 @@ _SENSORS = (M.MAV_SYS_STATUS_SENSOR_3D_GYRO | M.MAV_SYS_STATUS_SENSOR_3D_ACCEL
             | M.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
             | M.MAV_SYS_STATUS_SENSOR_YAW_POSITION | M.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
             | M.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
-            | M.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
+            | M.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS | M.MAV_SYS_STATUS_GEOFENCE)
 PREARM = M.MAV_SYS_STATUS_PREARM_CHECK
 UINT16_MAX = 65535
 
@@ -172,6 +173,8 @@ class TelemetryReporter:
     def sys_status(self, now: float = 0.0) -> Any:
         cmd, b = self.commander, self.battery
         health = _SENSORS
+        if getattr(cmd, "failsafe_reason", None) == "geofence":
+            health &= ~M.MAV_SYS_STATUS_GEOFENCE  # a breach (MAVProxy: "fence breach")
         if not cmd.failsafe and (cmd.armed or cmd.landed):
             health |= PREARM
         return M.MAVLink_sys_status_message(
