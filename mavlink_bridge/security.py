@@ -91,7 +91,9 @@ class LinkSecurity:
 
     ``secret_key``: 32 bytes, or None for no signing. ``link_id``: the signing link id
     we send with. ``initial_timestamp``: signing timestamp to start from (10 us units
-    since 2015; None: the wall clock, read once when the endpoint opens).
+    since 2015), then +1 per frame sent; None: follow the wall clock (read at each send,
+    so a long-running vehicle's stream never falls a minute behind the clock of a ground
+    station connecting later, which would refuse it as stale).
     ``allow_sysids``: system ids allowed to send state-changing messages (None: any).
     ``expose``: allow binding to a non-loopback address.
     """
@@ -165,6 +167,12 @@ class SigningMAVLink(mavlink.MAVLink):
             self.signing.timestamp = sec.initial_timestamp if sec.initial_timestamp \
                 is not None else signing_timestamp_now()
             self.signing.allow_unsigned_callback = self._allow_unsigned
+
+    def refresh_timestamp(self) -> None:
+        """Before signing a frame: catch the timestamp up with the wall clock (unless
+        ``initial_timestamp`` pinned it)."""
+        if self.security.initial_timestamp is None and self.signing.sign_outgoing:
+            self.signing.timestamp = max(self.signing.timestamp, signing_timestamp_now())
 
     def decode(self, msgbuf: bytearray) -> Any:
         self.verdict = None

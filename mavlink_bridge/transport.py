@@ -102,6 +102,8 @@ class UdpEndpoint:
         dest = addr or self.peer
         if dest is None or self._closed:
             return False
+        if self.security.signing:
+            self.mav.refresh_timestamp()
         buf = msg.pack(self.mav)
         self.mav.seq = (self.mav.seq + 1) % 256
         try:

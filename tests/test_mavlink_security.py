@@ -306,3 +306,23 @@ def test_cli_flags_key_file_env_and_passphrase(tmp_path) -> None:
         key_from_text("  \n")
     with pytest.raises(SystemExit):
         parser.parse_args(["--allow-sysid", "x"])
+
+
+def test_signing_timestamp_follows_the_wall_clock() -> None:
+    """A vehicle up for hours has sent far fewer frames than 10 us ticks: its signed
+    timestamps must still track the wall clock, or a ground station connecting now
+    (stock pymavlink, wall-clock timestamp) refuses the stream as over a minute old."""
+    gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255,
+                                     source_component=190)
+    gcs.setup_signing(KEY, sign_outgoing=True)
+    rig = secure_rig(LinkSecurity(secret_key=KEY), None, gcs_port(gcs))
+    try:
+        ep = rig.link.endpoints["gcs"]
+        ep.mav.signing.timestamp -= 2 * 60 * 100_000  # as if booted long ago
+        rig.tick()
+        hb = recv(gcs, "HEARTBEAT")
+        assert hb.get_signed()
+        assert gcs.mav.signing.badsig_count == 0
+    finally:
+        gcs.close()
+        rig.link.close()
