@@ -16,7 +16,9 @@ States (PX4 semantics; the bridge reports them as PX4 modes, see
     ARMED/TAKEOFF/HOLD/LAND --set_mode OFFBOARD (setpoints streaming)--> OFFBOARD
     OFFBOARD --no setpoint for setpoint_timeout--> HOLD (failsafe)
     HOLD (failsafe) --hold_before_land--> LAND --touchdown--> DISARMED
-    any in-air state --land / set_mode HOLD--> LAND / HOLD
+    any in-air state --land / set_mode HOLD / set_mode RTL--> LAND / HOLD / RTL
+    TAKEOFF/OFFBOARD/HOLD --beyond the geofence--> RTL (failsafe)
+    RTL --climb, return, descend, touchdown--> DISARMED
     ARMED --disarm_preflight without takeoff--> DISARMED;  any --collision--> DISARMED
 
 * OFFBOARD is accepted only while setpoints stream: more than ``stream_min_rate``
@@ -37,103 +39,41 @@ States (PX4 semantics; the bridge reports them as PX4 modes, see
   LAND descends at ``land_speed``; touchdown is the land detector (height above ground
   and vertical speed under thresholds for ``land_detect_time``), then it disarms.
 * A collision disarms, is reported, and latches: arming is refused until :meth:`reset`.
-* RTL is an extension point: the state exists (and maps to AUTO.RTL) but requesting it
-  is refused as ``"unsupported_mode"`` until it has a horizontal return-home leg.
+* Home is where the vehicle armed (or where :meth:`~Commander.place` put it). RTL climbs
+  to ``flight_level`` above the ground (or keeps its height if already higher) at
+  ``rtl_climb_speed``, flies straight to home at ``rtl_speed`` holding that altitude
+  (slowing as ``rtl_gain * distance`` within the last metres), descends at
+  ``land_speed`` once within ``rtl_arrive_radius``, touches down and disarms.
+* Geofence: in TAKEOFF, OFFBOARD or HOLD, a horizontal distance from home beyond
+  ``geofence`` (> 0) starts RTL as a failsafe (``failsafe_reason`` ``"geofence"``).
+* :meth:`~Commander.place`: the vehicle was moved (a simulator episode reset): the land
+  detector restarts, the collision latch clears, home becomes the new position, and the
+  commander continues airborne in the mode it is given (OFFBOARD keeps its stream).
 
 Verdict reasons: ``not_landed``, ``invalid_state``, ``not_armed``, ``in_air``,
-``bad_altitude``, ``no_setpoint_stream``, ``unsupported_mode``.
+``bad_altitude``, ``no_setpoint_stream``, ``unsupported_mode``, ``landed``.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
-from enum import StrEnum
-from typing import NamedTuple
 
-EPS = 1e-9  # s, tolerance on time comparisons (float sums of control periods)
+from sitl.commander_types import (
+    ACCEPTED,
+    AIRBORNE_STATES,
+    EPS,
+    ZERO,
+    CommanderConfig,
+    CommanderEvent,
+    Setpoint,
+    State,
+    VehicleSample,
+    Verdict,
+)
 
-
-class State(StrEnum):
-    """Commander states; the values are the names the MAVLink bridge maps to PX4 modes."""
-
-    DISARMED = "DISARMED"
-    ARMED = "ARMED"  # armed, idle on the ground
-    TAKEOFF = "TAKEOFF"
-    OFFBOARD = "OFFBOARD"
-    HOLD = "HOLD"
-    LAND = "LAND"
-    RTL = "RTL"  # extension point, not entered yet
-
-
-@dataclass
-class CommanderConfig:
-    """Commander parameters (PX4 equivalents in brackets)."""
-
-    setpoint_timeout: float = 1.0  # s without a setpoint in OFFBOARD -> HOLD [COM_OF_LOSS_T]
-    hold_before_land: float = 5.0  # s in failsafe HOLD -> LAND (math.inf: never)
-    stream_window: float = 1.0  # s over which the setpoint rate is measured
-    stream_min_rate: float = 2.0  # Hz that must be exceeded to enter OFFBOARD
-    takeoff_altitude: float = 2.5  # m above the takeoff point [MIS_TAKEOFF_ALT]
-    max_takeoff_altitude: float = 100.0  # m, larger requests are refused
-    takeoff_speed: float = 1.5  # m/s [MPC_TKO_SPEED]
-    takeoff_gain: float = 1.0  # 1/s, climb rate = min(takeoff_speed, gain * error)
-    takeoff_tolerance: float = 0.1  # m below the target counts as reached
-    land_speed: float = 0.7  # m/s [MPC_LAND_SPEED]
-    land_detect_height: float = 0.1  # m above ground
-    land_detect_speed: float = 0.2  # m/s, |vertical speed|
-    land_detect_time: float = 0.5  # s both must hold
-    disarm_preflight: float = 10.0  # s armed on the ground without takeoff [COM_DISARM_PRFLT]
-    yaw_gain: float = 1.0  # 1/s, absolute heading setpoint -> yaw rate
-    max_yaw_rate: float = 2.0  # rad/s, clamp of that yaw rate
-
-
-@dataclass(frozen=True)
-class Verdict:
-    """The answer to a request: accepted, or refused with a short reason code."""
-
-    accepted: bool
-    reason: str = ""
-
-
-ACCEPTED = Verdict(True)
-
-
-@dataclass(frozen=True)
-class VehicleSample:
-    """What the commander needs of the vehicle each step (world ENU, SI)."""
-
-    z: float  # m, up
-    vz: float  # m/s, up
-    yaw: float  # rad, CCW from east
-    height_agl: float  # m above the ground below the vehicle
-
-
-class Setpoint(NamedTuple):
-    """Velocity setpoint for the autopilot: world ENU m/s and CCW yaw rate rad/s."""
-
-    vx: float
-    vy: float
-    vz: float
-    yaw_rate: float
-
-
-ZERO = Setpoint(0.0, 0.0, 0.0, 0.0)
-
-
-@dataclass(frozen=True)
-class CommanderEvent:
-    """A transition, failsafe or refusal: ``kind`` is ``mode``, ``failsafe``, ``rejected``
-    or ``collision``; ``severity`` ``info``, ``warning`` or ``critical``; ``text`` fits
-    one STATUSTEXT (<= 50 characters)."""
-
-    time: float
-    kind: str
-    text: str
-    severity: str
-    state: State
-
+__all__ = ["ACCEPTED", "AIRBORNE_STATES", "EPS", "ZERO", "Commander", "CommanderConfig",
+           "CommanderEvent", "Setpoint", "State", "VehicleSample", "Verdict"]
 
 class Commander:
     """PX4-like commander for one vehicle (see the module docstring)."""
@@ -161,7 +101,31 @@ class Commander:
         self._low_since: float | None = None  # land detector: conditions hold since
         self._takeoff_base = 0.0  # z where the climb started
         self._takeoff_target = 0.0
+        self._home: tuple[float, float] | None = None  # (x, y) where it armed
+        self._rehome = False  # take home from the next sample
+        self._rtl_z = 0.0  # altitude of the return leg
+        self._rtl_phase = "climb"  # climb, return, descend
         self._events: list[CommanderEvent] = []
+
+    def place(self, now: float, airborne: bool, mode: State | str = State.HOLD) -> None:
+        """The vehicle was moved (see the module docstring): ``airborne`` -> armed in
+        ``mode`` (OFFBOARD or HOLD; anything else -> HOLD), else disarmed on the ground.
+        Setpoint history is kept, so an OFFBOARD stream carries on across the move."""
+        self._crashed = False
+        self._failsafe = None
+        self._low_since = None
+        self._landed = not airborne
+        self._rehome = True
+        self._armed_since = now
+        if not airborne:
+            self._state = State.DISARMED
+        else:
+            self._state = State.OFFBOARD if mode == State.OFFBOARD else State.HOLD
+
+    @property
+    def home(self) -> tuple[float, float] | None:
+        """Horizontal home position (where it armed or was placed), None before."""
+        return self._home
 
     @property
     def state(self) -> State:
@@ -234,6 +198,7 @@ class Commander:
         if not self._landed:
             return self._refuse(now, "not_landed", "Arming denied: not landed")
         self._armed_since = now
+        self._rehome = True
         self._go(now, State.ARMED, "Armed")
         return ACCEPTED
 
@@ -272,13 +237,37 @@ class Commander:
             self._go(now, State.LAND, "Landing")
         return ACCEPTED
 
+    def return_home(self, now: float, reason: str | None = None) -> Verdict:
+        """RTL (see the module docstring); ``reason``: a failsafe's name. Refused
+        disarmed (``not_armed``) and on the ground (``landed``)."""
+        if not self.armed:
+            return self._refuse(now, "not_armed", "Return denied: not armed")
+        if self._landed or self._state == State.ARMED:
+            return self._refuse(now, "landed", "Return denied: landed")
+        if self._state == State.RTL and reason is None:
+            return ACCEPTED
+        s = self._sample
+        z, agl = (s.z, s.height_agl) if s is not None else (0.0, 0.0)
+        self._rtl_z = z + max(0.0, self.config.flight_level - agl)
+        self._rtl_phase = "climb"
+        self._failsafe = reason
+        if reason is None:
+            self._go(now, State.RTL, "Returning home")
+        else:
+            self._failsafe_since = now
+            self._go(now, State.RTL, f"Failsafe: {reason}, returning home", kind="failsafe",
+                     severity="critical")
+        return ACCEPTED
+
     def set_mode(self, now: float, state: str) -> Verdict:
-        """Switch to ``"OFFBOARD"``, ``"HOLD"``, ``"LAND"`` or ``"TAKEOFF"``.
+        """Switch to ``"OFFBOARD"``, ``"HOLD"``, ``"LAND"``, ``"TAKEOFF"`` or ``"RTL"``.
 
         On the ground HOLD (and LAND while disarmed) is accepted and changes nothing:
         that is what the vehicle already reports. OFFBOARD needs the vehicle armed and
-        setpoints streaming. Anything else (RTL, unknown names) is ``unsupported_mode``.
+        setpoints streaming. Unknown names are ``unsupported_mode``.
         """
+        if state == State.RTL:
+            return self.return_home(now)
         if state == State.TAKEOFF:
             return self.takeoff(now)
         if state == State.LAND:
@@ -314,8 +303,16 @@ class Commander:
         """Advance to ``now`` with the vehicle's state; return the setpoint to fly."""
         c = self.config
         self._sample = sample
+        if self._rehome or self._home is None:
+            self._home, self._rehome = (sample.x, sample.y), False
         self._detect_landing(now, sample)
         s = self._state
+        if s in (State.TAKEOFF, State.OFFBOARD, State.HOLD) and c.geofence > 0.0 and \
+                math.hypot(sample.x - self._home[0], sample.y - self._home[1]) > c.geofence:
+            self.return_home(now, "geofence")
+            s = self._state
+        if s == State.RTL:
+            return self._rtl_setpoint(now, sample)
         if s == State.OFFBOARD:
             if now - self._last_setpoint_time > c.setpoint_timeout + EPS:
                 self._failsafe, self._failsafe_since = "setpoint_loss", now
@@ -346,6 +343,29 @@ class Commander:
                 and c.disarm_preflight > 0.0:
             self._go(now, State.DISARMED, "Disarmed: no takeoff")
         return ZERO
+
+    def _rtl_setpoint(self, now: float, sample: VehicleSample) -> Setpoint:
+        """Climb to the return altitude, fly home, descend; disarm on touchdown."""
+        c = self.config
+        hold_z = max(-c.rtl_climb_speed, min(c.rtl_climb_speed,
+                                              c.rtl_gain * (self._rtl_z - sample.z)))
+        if self._rtl_phase == "climb":
+            if self._rtl_z - sample.z > c.takeoff_tolerance:
+                return Setpoint(0.0, 0.0, hold_z, 0.0)
+            self._rtl_phase = "return"
+        if self._rtl_phase == "return":
+            assert self._home is not None
+            dx, dy = self._home[0] - sample.x, self._home[1] - sample.y
+            dist = math.hypot(dx, dy)
+            if dist > c.rtl_arrive_radius:
+                speed = min(c.rtl_speed, c.rtl_gain * dist)
+                return Setpoint(speed * dx / dist, speed * dy / dist, hold_z, 0.0)
+            self._rtl_phase = "descend"
+        if self._landed:
+            self._failsafe = None
+            self._go(now, State.DISARMED, "Landed home, disarmed")
+            return ZERO
+        return Setpoint(0.0, 0.0, -c.land_speed, 0.0)
 
     def _offboard_setpoint(self, yaw: float) -> Setpoint:
         vx, vy, vz, yaw_rate = self._sp

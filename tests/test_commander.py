@@ -175,7 +175,7 @@ def test_modes_on_the_ground_are_accepted_noops_or_refused() -> None:
     assert c.set_mode(0.0, "HOLD").accepted and c.state == State.DISARMED
     assert c.set_mode(0.0, "LAND").accepted and c.state == State.DISARMED
     assert refused(c.set_mode(0.0, "OFFBOARD"), "not_armed")
-    assert refused(c.set_mode(0.0, "RTL"), "unsupported_mode")  # extension point
+    assert refused(c.set_mode(0.0, "RTL"), "not_armed")
     assert refused(c.set_mode(0.0, "ACRO"), "unsupported_mode")
     c.arm(0.0)
     assert c.set_mode(0.0, "HOLD").accepted and c.state == State.ARMED
