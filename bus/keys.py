@@ -28,6 +28,9 @@ OBSERVATION = "observation"
 EPISODE = "episode"
 CLOCK = "clock"
 ACTOR = "actor"
+STATUS = "status"
+PARAMS = "params"
+COMMAND = "command"
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,12 @@ TOPICS: dict[str, Topic] = {
               "lockstep step clock (step index, sim time)"),
         Topic(ACTOR, "skyloop_msgs/msg/ActorWeights",
               "actor weights blob + version (actor-learner)"),
+        Topic(STATUS, "skyloop_msgs/msg/VehicleStatus",
+              "the commander's state and events (sim -> bridge: heartbeat, STATUSTEXT)"),
+        Topic(PARAMS, "skyloop_msgs/msg/Parameter",
+              "a vehicle parameter set (bus.params names), applied by the sim"),
+        Topic(COMMAND, "skyloop_msgs/msg/VehicleCommand",
+              "commander requests: a Zenoh query answered by the sim with CommandAck"),
     )
 }
 

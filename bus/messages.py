@@ -37,7 +37,12 @@ OBSERVATION = f"{PROJECT_PACKAGE}/msg/Observation"
 EPISODE_EVENT = f"{PROJECT_PACKAGE}/msg/EpisodeEvent"
 STEP_CLOCK = f"{PROJECT_PACKAGE}/msg/StepClock"
 ACTOR_WEIGHTS = f"{PROJECT_PACKAGE}/msg/ActorWeights"
-PROJECT_TYPES = (OBSERVATION, EPISODE_EVENT, STEP_CLOCK, ACTOR_WEIGHTS)
+VEHICLE_STATUS = f"{PROJECT_PACKAGE}/msg/VehicleStatus"
+PARAMETER = f"{PROJECT_PACKAGE}/msg/Parameter"
+VEHICLE_COMMAND = f"{PROJECT_PACKAGE}/msg/VehicleCommand"
+COMMAND_ACK = f"{PROJECT_PACKAGE}/msg/CommandAck"
+PROJECT_TYPES = (OBSERVATION, EPISODE_EVENT, STEP_CLOCK, ACTOR_WEIGHTS, VEHICLE_STATUS,
+                 PARAMETER, VEHICLE_COMMAND, COMMAND_ACK)
 
 START, END = 0, 1
 OUTCOMES = {"none": 0, "success": 1, "collision": 2, "timeout": 3, "aborted": 4}
@@ -77,6 +82,10 @@ Observation = _T[OBSERVATION]
 EpisodeEvent = _T[EPISODE_EVENT]
 StepClock = _T[STEP_CLOCK]
 ActorWeights = _T[ACTOR_WEIGHTS]
+VehicleStatus = _T[VEHICLE_STATUS]
+Parameter = _T[PARAMETER]
+VehicleCommand = _T[VEHICLE_COMMAND]
+CommandAck = _T[COMMAND_ACK]
 _ZERO_COV = np.zeros(36, dtype=np.float64)
 
 
@@ -319,3 +328,41 @@ def actor_weights(blob: bytes | bytearray | memoryview | np.ndarray, version: in
 def actor_blob(msg: Any) -> bytes:
     """``ActorWeights`` -> the blob as ``bytes``."""
     return np.asarray(msg.blob, dtype=np.uint8).tobytes()
+
+
+# ----------------------------------------------------------------------------- vehicle
+#: STATUSTEXT severities (MAV_SEVERITY) by name.
+SEVERITIES = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning": 4,
+              "notice": 5, "info": 6, "debug": 7}
+
+
+def vehicle_status(stamp_s: float, vehicle_time: float, revision: int, state: str,
+                   armed: bool, landed: bool, failsafe_reason: str | None, crashed: bool,
+                   home: Sequence[float] = (0.0, 0.0, 0.0),
+                   events: Sequence[tuple[str, str, str]] = ()) -> Any:
+    """``skyloop_msgs/VehicleStatus``; ``events``: (text, kind, severity name) each."""
+    return VehicleStatus(
+        header=header(stamp_s), vehicle_time=float(vehicle_time), revision=int(revision),
+        state=str(state), armed=bool(armed), landed=bool(landed),
+        failsafe=failsafe_reason is not None, failsafe_reason=failsafe_reason or "",
+        crashed=bool(crashed), home=np.array(home, dtype=np.float64).reshape(3),
+        event_texts=[t for t, _, _ in events], event_kinds=[k for _, k, _ in events],
+        event_severities=np.array([SEVERITIES.get(s, 6) for _, _, s in events], np.uint8))
+
+
+def vehicle_command(command: str, mode: str = "", param1: float = math.nan) -> Any:
+    """``skyloop_msgs/VehicleCommand`` (see the .msg for the commands)."""
+    return VehicleCommand(command=str(command), mode=str(mode), param1=float(param1))
+
+
+def command_ack(accepted: bool, reason: str, state: str, armed: bool, landed: bool,
+                failsafe: bool, revision: int) -> Any:
+    """``skyloop_msgs/CommandAck``: a verdict and the commander's state after it."""
+    return CommandAck(accepted=bool(accepted), reason=str(reason), state=str(state),
+                      armed=bool(armed), landed=bool(landed), failsafe=bool(failsafe),
+                      revision=int(revision))
+
+
+def parameter(name: str, value: float) -> Any:
+    """``skyloop_msgs/Parameter``: one parameter set (``bus.params`` names)."""
+    return Parameter(name=str(name), value=float(value))

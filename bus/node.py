@@ -9,6 +9,12 @@ callback, are counted and logged (rate-limited), never raised into Zenoh's threa
 Callbacks run on Zenoh's threads: keep them short and never block in them. For a
 consumer that waits, use :meth:`Bus.inbox` (a bounded queue; a full queue drops the
 oldest message and counts it).
+
+Request/reply (the commander's requests): :meth:`Bus.queryable` declares a
+:class:`Queryable` whose queries wait in Zenoh's FIFO channel until the owner takes them
+(:meth:`Queryable.take`, non-blocking) and answers each when it likes
+(:meth:`Request.reply`) -- no user code runs in Zenoh's threads; :meth:`Bus.query` sends
+one request and waits (bounded) for the decoded reply, ``None`` if nobody answered.
 """
 
 from __future__ import annotations
@@ -219,6 +225,62 @@ class Inbox:
         self.subscription.close()
 
 
+class Request:
+    """One query taken from a :class:`Queryable`: the decoded ``msg`` and its reply."""
+
+    def __init__(self, query: Any, msg: Any) -> None:
+        self._query, self.msg = query, msg
+
+    def reply(self, msg: Any) -> None:
+        """Answer with ``msg`` (any type of the type store); a failure is logged."""
+        try:
+            self._query.reply(self._query.key_expr, encode(msg))
+        except Exception:  # noqa: BLE001 - the querier gave up or the session is closing
+            log.warning("reply to %s failed", self._query.key_expr, exc_info=True)
+        self._query = None  # dropping the query finalises it
+
+
+class Queryable:
+    """Queries on one topic of one vehicle, queued until :meth:`take` (see module doc).
+    Counters: ``received``, ``decode_errors`` (answered with an error reply)."""
+
+    def __init__(self, session: zenoh.Session, topic: str, vehicle: str) -> None:
+        self.topic, self.msgtype = topic, topic_info(topic).msgtype
+        self.key = key(vehicle, topic)
+        self.received = self.decode_errors = 0
+        self._log = RateLimitedLog(log)
+        self._q: Any = session.declare_queryable(self.key)
+
+    def take(self) -> list[Request]:
+        """Every query waiting now, decoded (never blocks)."""
+        out: list[Request] = []
+        while self._q is not None and (query := self._q.try_recv()) is not None:
+            try:
+                payload = query.payload
+                msg = decode(self.msgtype, payload.to_bytes() if payload is not None else b"")
+            except Exception as err:  # noqa: BLE001 - a bad request is answered, not raised
+                self.decode_errors += 1
+                self._log(logging.WARNING, "%s: request does not decode as %s: %s",
+                          self.key, self.msgtype, err)
+                try:
+                    query.reply_err(f"request does not decode as {self.msgtype}".encode())
+                except Exception:  # noqa: BLE001
+                    pass
+                continue
+            self.received += 1
+            out.append(Request(query, msg))
+        return out
+
+    def counters(self) -> dict[str, int]:
+        return {"received": self.received, "decode_errors": self.decode_errors}
+
+    def close(self) -> None:
+        """Undeclare (idempotent)."""
+        q, self._q = self._q, None
+        if q is not None:
+            q.undeclare()
+
+
 class Bus:
     """Typed access to the ``skyloop/<vehicle>/<topic>`` keys over one session.
 
@@ -229,7 +291,7 @@ class Bus:
     def __init__(self, session: zenoh.Session, *, owns_session: bool = False) -> None:
         self.session = session
         self._owns = owns_session
-        self._entities: list[Publisher | Subscription | Inbox] = []
+        self._entities: list[Publisher | Subscription | Inbox | Queryable] = []
         self._closed = False
 
     @classmethod
@@ -267,6 +329,31 @@ class Bus:
         return self._track(Inbox(self.session, topic, vehicle, maxsize,
                                  with_vehicle=with_vehicle))
 
+    def queryable(self, topic: str, vehicle: str) -> Queryable:
+        """Declare a :class:`Queryable` (requests on ``topic`` of ``vehicle``)."""
+        self._check_open()
+        return self._track(Queryable(self.session, topic, vehicle))
+
+    def query(self, topic: str, vehicle: str, msg: Any, reply_type: str,
+              timeout: float = 1.0) -> Any | None:
+        """Send ``msg`` as a query on ``topic`` and return the first reply decoded as
+        ``reply_type``; ``None`` if no queryable answered within ``timeout`` seconds, or
+        the answer was an error or did not decode (logged)."""
+        self._check_open()
+        k = key(vehicle, topic)
+        if getattr(msg, "__msgtype__", None) != topic_info(topic).msgtype:
+            raise TypeError(f"{k} takes {topic_info(topic).msgtype}")
+        for reply in self.session.get(k, payload=encode(msg), timeout=timeout):
+            if reply.ok is None:
+                log.warning("%s: error reply: %s", k, reply.err.payload.to_bytes()[:200])
+                return None
+            try:
+                return decode(reply_type, reply.ok.payload.to_bytes())
+            except Exception as err:  # noqa: BLE001
+                log.warning("%s: reply does not decode as %s: %s", k, reply_type, err)
+                return None
+        return None
+
     def counters(self) -> dict[str, int]:
         """Totals over every entity declared on this bus (closed ones included)."""
         total = {"published": 0, "published_bytes": 0, "received": 0, "decode_errors": 0,
@@ -275,6 +362,9 @@ class Bus:
             if isinstance(ent, Publisher):
                 total["published"] += ent.sent
                 total["published_bytes"] += ent.sent_bytes
+            elif isinstance(ent, Queryable):
+                total["received"] += ent.received
+                total["decode_errors"] += ent.decode_errors
             else:
                 for name, value in ent.counters().items():
                     total[name] += value

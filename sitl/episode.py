@@ -72,9 +72,24 @@ class EpisodeSim:
         """
         return self.step_world(body_to_world(command, self.vehicle.estimate.yaw))
 
-    def step_world(self, setpoint: np.ndarray) -> bool:
-        """Fly one control period on a world ENU (vx, vy, vz, yaw_rate) setpoint."""
-        self.vehicle.step(setpoint)
+    def new_goal(self, goal: np.ndarray) -> None:
+        """Start a new episode from where the vehicle is, toward ``goal`` (the sim node's
+        free flight and goals from the bus): steps restart, time and vehicle go on."""
+        self.start = self.vehicle.truth.position.copy()
+        self.goal = np.asarray(goal, dtype=float).copy()
+        self.steps, self.collided = 0, False
+
+    def place_on_ground(self, x: float, y: float, yaw: float) -> None:
+        """Stand the vehicle on the terrain at (x, y), motors stopped (the simulator
+        node's ground phase; the JSBSim ground is put at the terrain's height there)."""
+        ground = float(self.world.terrain_height(x, y))
+        self.vehicle.reset(np.array([x, y, ground]), yaw, on_ground=True)
+        self.collided = False
+
+    def step_world(self, setpoint: np.ndarray, motors: bool = True) -> bool:
+        """Fly one control period on a world ENU (vx, vy, vz, yaw_rate) setpoint
+        (``motors`` False: stopped, see ``Vehicle.step``)."""
+        self.vehicle.step(setpoint, motors)
         self.time += self.vehicle.config.control_period
         self.steps += 1
         self.collided = self.world.collides(self.vehicle.truth.position,

@@ -33,6 +33,12 @@ Implements the physics side of skyloop's vehicle (issue 2, section 2):
   places the vehicle airborne with zero velocity and level attitude, and spins the
   propellers up to the hover throttle with JSBSim's propagation disabled, so it starts
   hovering.
+- Ground: JSBSim's ground is flat, at ``ground`` metres (0 unless told otherwise).
+  ``reset(..., on_ground=True)`` puts the vehicle on its gear there, motors stopped (the
+  F450's CG rests ``REST_HEIGHT`` above the ground); :meth:`FlightModel.set_ground` moves
+  the ground under the vehicle (the simulator node makes it follow the world's terrain
+  while the commander flies near it). Reported heights are ``h_agl + ground``, which is
+  exactly ``h_agl`` when the ground is at 0 (every episode of the env).
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from pathlib import Path
 import jsbsim
 
 FT = 0.3048  # metres per foot
+REST_HEIGHT = 0.1507  # m, CG above the ground with the F450 standing on its gear (measured)
 FCS_FILE = Path(__file__).resolve().parent / "fcs" / "f450_attitude_rate.xml"
 
 _WGS84_A = 6378137.0
@@ -144,23 +151,33 @@ class FlightModel:
         self._g = g
         self.gravity = 9.80665  # effective (gravity minus centrifugal), set by reset
         self._east0 = self._north0 = 0.0  # world position of JSBSim's origin this episode
+        self._ground = 0.0  # m, JSBSim's (flat) ground elevation
+        self._set_ground = node("position/terrain-elevation-asl-ft").set_double_value
         self.reset(0.0, 0.0, 3.5, 0.0)
 
     # ------------------------------------------------------------------ placement
-    def reset(self, east: float, north: float, up: float, yaw: float) -> None:
-        """Hovering at ENU (east, north, up) metres with ENU yaw `yaw`, zero velocity."""
+    def reset(self, east: float, north: float, up: float, yaw: float,
+              on_ground: bool = False) -> None:
+        """Hovering at ENU (east, north, up) metres with ENU yaw `yaw`, zero velocity;
+        ``on_ground``: standing on flat ground at ``up`` metres instead, motors stopped."""
         fdm = self.fdm
         self._east0, self._north0 = float(east), float(north)
+        self._ground = float(up) if on_ground else 0.0
         fdm["ic/lat-geod-rad"] = 0.0
         fdm["ic/long-gc-rad"] = 0.0
-        fdm["ic/terrain-elevation-ft"] = 0.0
-        fdm["ic/h-agl-ft"] = up / FT
+        fdm["ic/terrain-elevation-ft"] = self._ground / FT
+        fdm["ic/h-agl-ft"] = (REST_HEIGHT if on_ground else up) / FT
         for name in ("ic/u-fps", "ic/v-fps", "ic/w-fps", "ic/p-rad_sec", "ic/q-rad_sec",
                      "ic/r-rad_sec", "ic/phi-rad", "ic/theta-rad"):
             fdm[name] = 0.0
         fdm["ic/psi-true-rad"] = (0.5 * math.pi - yaw) % (2.0 * math.pi)
         fdm.reset_to_initial_conditions(0)
         fdm["propulsion/set-running"] = -1
+        if on_ground:  # motors stopped; let it settle on its gear
+            self.set_commands(0.0, 0.0, 0.0, 0.0)
+            self.run(self.spinup_steps)
+            self.gravity = self._g["grav"]() * FT - _EARTH_RATE**2 * _M_PER_RAD_LON
+            return
         self.set_commands(0.0, 0.0, self.hover_throttle, 0.0)
         # spin the propellers up to hover speed with the vehicle frozen in place
         self._propagate.set_double_value(0.0)
@@ -168,6 +185,16 @@ class FlightModel:
             self._run()
         self._propagate.set_double_value(1.0)
         self.gravity = self._g["grav"]() * FT - _EARTH_RATE**2 * _M_PER_RAD_LON
+
+    @property
+    def ground(self) -> float:
+        """Elevation (m) of JSBSim's flat ground."""
+        return self._ground
+
+    def set_ground(self, elevation: float) -> None:
+        """Move JSBSim's flat ground to ``elevation`` metres (heights keep their meaning)."""
+        self._ground = float(elevation)
+        self._set_ground(self._ground / FT)
 
     # ------------------------------------------------------------------ stepping
     def set_commands(self, tilt_east: float, tilt_north: float, throttle: float,
@@ -190,7 +217,7 @@ class FlightModel:
         g = self._g
         return (self._east0 + g["lon"]() * _M_PER_RAD_LON,
                 self._north0 + g["lat"]() * _M_PER_RAD_LAT,
-                g["h"]() * FT)
+                g["h"]() * FT + self._ground)
 
     def velocity(self) -> tuple[float, float, float]:
         """ENU velocity relative to the ground, m/s."""

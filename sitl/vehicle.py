@@ -79,25 +79,33 @@ class Vehicle:
         self.rejected_setpoints = 0
         self.reset(np.array([0.0, 0.0, 3.5]), 0.0, seed)
 
-    def reset(self, position: np.ndarray, yaw: float, seed: int | None = None) -> None:
-        """Airborne, hovering (zero velocity) at `position` (ENU) facing `yaw`.
+    def reset(self, position: np.ndarray, yaw: float, seed: int | None = None,
+              on_ground: bool = False) -> None:
+        """Airborne, hovering (zero velocity) at `position` (ENU) facing `yaw`; with
+        ``on_ground``, standing on flat ground at ``position[2]``, motors stopped.
 
         Re-seeds the sensor noise if `seed` is given (otherwise the noise stream goes on);
         clears the autopilot, the estimator and `rejected_setpoints`.
         """
         e, n, u = (float(x) for x in position)
-        self.fm.reset(e, n, u, float(yaw))
+        self.fm.reset(e, n, u, float(yaw), on_ground=on_ground)
         g = self.fm.gravity
         self.sensors.reset(seed)
         self.autopilot.reset(gravity=g)
-        self.estimator.reset((e, n, u), float(yaw), gravity=g)
+        self.estimator.reset(self.fm.position() if on_ground else (e, n, u), float(yaw),
+                             gravity=g)
         self.rejected_setpoints = 0
         self._steps = 0
         self._truth: VehicleState | None = None
 
-    def step(self, setpoint: np.ndarray) -> None:
-        """Fly one control period toward the ENU velocity/yaw-rate `setpoint`."""
+    def step(self, setpoint: np.ndarray, motors: bool = True) -> None:
+        """Fly one control period toward the ENU velocity/yaw-rate `setpoint`;
+        ``motors`` False: motors stopped (disarmed or idle on the ground), the autopilot
+        is reset and the setpoint ignored."""
         vx, vy, vz, yaw_rate = setpoint  # ValueError unless exactly four values
+        if not motors:
+            self._step_motors_off()
+            return
         if not self.autopilot.set_setpoint(vx, vy, vz, yaw_rate):
             self.rejected_setpoints += 1
         fm, sens, est, ap = self.fm, self.sensors, self.estimator, self.autopilot
@@ -115,6 +123,25 @@ class Vehicle:
         est.correct(sens.gps(pos, fm.velocity()), sens.baro(pos[2]), sens.mag_yaw(rpy()[2]))
         self._steps += 1
         self._truth = None
+
+    def _step_motors_off(self) -> None:
+        fm, sens, est = self.fm, self.sensors, self.estimator
+        self.autopilot.reset(gravity=fm.gravity)
+        fm.set_commands(0.0, 0.0, 0.0, 0.0)
+        for _ in range(self._n_outer):
+            f = sens.accel(*fm.specific_force_flu())
+            w = sens.gyro(*fm.gyro_flu())
+            roll, pitch, _ = fm.rpy()
+            est.propagate(f, w, roll, pitch, self._dt_outer)
+            fm.run(self._n_inner)
+        pos = fm.position()
+        est.correct(sens.gps(pos, fm.velocity()), sens.baro(pos[2]), sens.mag_yaw(fm.rpy()[2]))
+        self._steps += 1
+        self._truth = None
+
+    def set_ground(self, elevation: float) -> None:
+        """Move the flight model's flat ground (see :mod:`sitl.flight_model`)."""
+        self.fm.set_ground(elevation)
 
     @property
     def time(self) -> float:

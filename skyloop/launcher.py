@@ -7,14 +7,18 @@ joined through a hub endpoint on a free port (``SKYLOOP_ZENOH_HUB``, so two stac
 one machine do not meet); ``--router`` starts ``skyloop router`` and puts every node in
 client mode.
 
-Start: [router, until it listens], then every node at once; the sim warms up and waits
-for "go" on its stdin, which it gets once [record] subscribed and the policy reported
-OFFBOARD (arm, takeoff and offboard done the MAVSDK way); then it runs the episodes. In
-lockstep nothing moves until the sim starts, so every episode is the same as in the
-in-process env. When the sim finishes, the others get SIGTERM (the recorder closes its
-MCAP), then SIGKILL after the grace period. If any child dies first, or on Ctrl-C, every
-child is stopped within 5 s and the launcher exits non-zero, naming the node that died
-and its last log line.
+Start: [router, until it listens], then every node at once; the sim warms up and flies
+its ground phase (the vehicle on the ground, its commander answering requests) until
+"go" on its stdin, which it gets once [record] subscribed and the policy reported
+OFFBOARD (arm, takeoff and offboard done the MAVSDK way, through the bridge to the sim's
+commander); then it runs the episodes. In lockstep every episode is the same as in the
+in-process env. ``--policy none``: no policy process; the sim runs free flight in real
+time (the vehicle waits on the ground, disarmed, for a ground station; an episode is one
+goal), until stopped or ``--episodes`` goals (default: until stopped). ``--param
+NAME=VALUE`` goes to the sim (``bus/params.py``). When the sim finishes, the others get
+SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period. If any
+child dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits
+non-zero, naming the node that died and its last log line.
 """
 
 from __future__ import annotations
@@ -162,22 +166,25 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
     v = ["--vehicle", args.vehicle]
     return {
         "perception": ["perception", *v],
-        "bridge": ["bridge", *v, *clock, "--scenario", args.scenario,
-                   "--api-port", str(ports["api"]),
+        "bridge": ["bridge", *v, "--api-port", str(ports["api"]),
                    "--api-local-port", str(ports["api_local"]),
                    "--gcs-port", str(ports["gcs"]), "--gcs-local-port", str(ports["gcs_local"])],
         "policy": ["policy", *v, *clock, "--api-port", str(ports["api"]),
                    *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
         "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
-                str(args.episodes), "--seed", str(args.seed), "--max-steps", str(args.max_steps)],
+                str(args.episodes), "--seed", str(args.seed), "--max-steps", str(args.max_steps),
+                *(["--free-flight"] if args.policy == "none" else []),
+                *(a for p in args.param for a in ("--param", p))],
     }
 
 
 def run_up(args: argparse.Namespace) -> int:
     """Run the graph (see the module docstring); returns the exit code."""
     if args.policy == "none" and not args.realtime:
-        print("--policy none: nothing answers the setpoints, running --realtime")
+        print("--policy none: free flight for a ground station, running --realtime")
         args.realtime = True
+    if args.episodes is None:
+        args.episodes = 0 if args.policy == "none" else 5
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     env.setdefault("MAVLINK20", "1")
@@ -280,7 +287,8 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p = sub.add_parser("up", help="run the whole stack (sim, perception, policy, bridge, "
                                   "[record], [router]) for N episodes")
     p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=int, default=5)
+    p.add_argument("--episodes", type=int, default=None,
+                   help="episodes (default 5; --policy none: goals, default until stopped)")
     p.add_argument("--seed", type=int, default=1000, help="episode i uses seed + i")
     p.add_argument("--max-steps", type=int, default=300, help="episode timeout (env: 300)")
     p.add_argument("--policy", default="shipped",
@@ -295,6 +303,8 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p.add_argument("--log-dir", default=None, help="record the run (MCAP) under this dir")
     p.add_argument("--json", default=None, help="write the summary here")
     p.add_argument("--vehicle", default="uav1")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="vehicle parameter for the sim (bus/params.py), repeatable")
     p.add_argument("--api-port", type=int, default=14540)
     p.add_argument("--api-local-port", type=int, default=14580)
     p.add_argument("--gcs-port", type=int, default=14550)

@@ -63,15 +63,35 @@ def _raise_on_term() -> None:
 
 
 # ----------------------------------------------------------------------------- nodes
+def parse_params(items: list[str]) -> dict[str, float]:
+    """``NAME=VALUE`` flags -> a checked parameter dict (``bus.params``); SystemExit
+    naming the bad one."""
+    from bus import params
+
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            if not sep:
+                raise ValueError(f"{item!r} is not NAME=VALUE")
+            out[name] = params.check(name, value)
+        except ValueError as err:
+            raise SystemExit(f"--param: {err}") from None
+    return out
+
+
 def cmd_sim(args: argparse.Namespace) -> int:
     from sitl.node import SimNode, SimNodeConfig
 
     _raise_on_term()
+    values = parse_params(args.param)
     bus = _open_bus(args)
     try:
         node = SimNode(bus, SimNodeConfig(scenario=args.scenario, episodes=args.episodes,
                                           seed=args.seed, vehicle=args.vehicle,
-                                          realtime=args.realtime, max_steps=args.max_steps))
+                                          realtime=args.realtime, max_steps=args.max_steps,
+                                          free_flight=args.free_flight, params=values,
+                                          lockstep_timeout_s=args.lockstep_timeout))
         go = (lambda: sys.stdin.readline()) if args.wait_go else None
         node.run(lambda line: print(line, flush=True), go)
     finally:
@@ -127,27 +147,14 @@ def cmd_policy(args: argparse.Namespace) -> int:
 def cmd_bridge(args: argparse.Namespace) -> int:
     from mavlink_bridge.node import BridgeNode
     from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
-    from sitl.commander import Commander, VehicleSample
 
-    worlds: dict[str, Any] = {}
-
-    def ground(scenario: str, x: float, y: float) -> float:
-        if scenario not in worlds:
-            from sitl.world import World, load_scenario
-
-            worlds[scenario] = World(load_scenario(scenario))
-        return float(worlds[scenario].terrain_height(x, y))
-
-    if args.scenario:  # load the terrain now, not at the first episode (real time)
-        ground(args.scenario, 0.0, 0.0)
     link = VehicleLinkConfig(
         api=LinkConfig(args.api_local_port, args.api_port, args.bind, args.api_host),
         gcs=None if args.no_gcs else LinkConfig(args.gcs_local_port, args.gcs_port,
                                                 args.bind, args.gcs_host))
     stop = _stop_event()
     bus = _open_bus(args)
-    node = BridgeNode(bus, Commander(), VehicleSample, args.vehicle, link,
-                      lockstep=not args.realtime, ground=ground)
+    node = BridgeNode(bus, args.vehicle, link, command_timeout_s=args.command_timeout)
     logging.getLogger("skyloop.bridge").info(
         "bridge up: api %s -> %s:%d, gcs %s", node.link.address("api"), args.api_host,
         args.api_port, "off" if args.no_gcs else f"-> {args.gcs_host}:{args.gcs_port}")
@@ -187,11 +194,22 @@ def cmd_up(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- parsers
 def add_stack_commands(sub: Any) -> None:
     """Register the stack's subcommands on ``sub`` (argparse subparsers)."""
-    p = sub.add_parser("sim", help="simulator node: seeded episodes on the bus")
+    p = sub.add_parser("sim", help="simulator node: the vehicle, its commander and "
+                                   "failsafes, seeded episodes on the bus")
     _zenoh_args(p)
     _clock_args(p)
     p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=int, default=1)
+    p.add_argument("--episodes", type=int, default=1,
+                   help="episodes to run (--free-flight: goals to reach, 0: until stopped)")
+    p.add_argument("--free-flight", action="store_true",
+                   help="no seeded placements: wait on the ground for a ground station; "
+                        "an episode is one goal, no timeout")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="vehicle parameter (bus/params.py: COM_OF_LOSS_T, SKY_HOLD_LAND_T, "
+                        "MPC_XY_VEL_MAX, MPC_Z_VEL_MAX, GF_MAX_HOR_DIST, SKY_FLIGHT_LVL)")
+    p.add_argument("--lockstep-timeout", type=float, default=2.0,
+                   help="lockstep: wall seconds to wait for a step's command in OFFBOARD "
+                        "before flying without it (default 2)")
     p.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")
     p.add_argument("--max-steps", type=int, default=300, help="timeout (env: 300)")
     p.add_argument("--wait-go", action="store_true",
@@ -213,7 +231,8 @@ def add_stack_commands(sub: Any) -> None:
     p.add_argument("--takeoff-altitude", type=float, default=None)
     p.set_defaults(func=cmd_policy)
 
-    p = sub.add_parser("bridge", help="vehicle MAVLink endpoint + commander on the bus")
+    p = sub.add_parser("bridge", help="the vehicle's MAVLink endpoint (commands go to "
+                                      "the sim's commander over the bus)")
     _zenoh_args(p)
     _clock_args(p)
     p.add_argument("--bind", default="127.0.0.1", help="local address of both links")
@@ -224,8 +243,11 @@ def add_stack_commands(sub: Any) -> None:
     p.add_argument("--gcs-port", type=int, default=MAVLINK_DEFAULTS["gcs_port"])
     p.add_argument("--gcs-local-port", type=int, default=MAVLINK_DEFAULTS["gcs_local_port"])
     p.add_argument("--no-gcs", action="store_true", help="no ground-station link")
+    p.add_argument("--command-timeout", type=float, default=1.0,
+                   help="seconds to wait for the sim's answer to a command (then "
+                        "TEMPORARILY_REJECTED)")
     p.add_argument("--scenario", default=None,
-                   help="preload this scenario's terrain (for the land detector)")
+                   help="unused (the land detector moved into the sim); kept for old scripts")
     p.set_defaults(func=cmd_bridge)
 
     p = sub.add_parser("record", help="record skyloop/** into MCAP (see 'record --help')",

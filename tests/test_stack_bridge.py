@@ -1,104 +1,155 @@
-"""The bridge node over real loopback Zenoh and UDP MAVLink, in real time.
+"""The bridge node as the vehicle's MAVLink face, over real loopback Zenoh and UDP.
 
-A policy node (scripted actor, its MAVLink client on a free port) arms, takes off and
-enters OFFBOARD through the bridge; its setpoints come out on ``cmd_vel`` in the body
-frame, stamped with the step they answer. Then the policy "dies" (its link closes) and
-the bridge's commander falls to HOLD after 1.0 s of stack time, then LAND, and says so
-on ``cmd_vel`` (world frame) without any help from the simulator.
+The vehicle side is the sim's real :class:`~sitl.vehicle_service.VehicleService` (the
+commander's requests, status and events on the bus) without the flight model: the test
+serves it, and offers it the ``cmd_vel`` setpoints, between the offboard client's polls.
+Checked: no heartbeat until the vehicle reported a status; arm/takeoff/offboard reach
+the sim's commander and come back as COMMAND_ACK with the heartbeat following; events
+become STATUSTEXT; setpoints are forwarded on ``cmd_vel`` with their frame and
+``time_boot_ms`` stamp, exact re-sends once; a vehicle that does not answer gives
+TEMPORARILY_REJECTED, counted.
 """
 
 from __future__ import annotations
 
 import socket
 import threading
+import time
 
-import numpy as np
 import pytest
 from loopback import free_port, wait_for
 
 from bus import keys
 from bus import messages as m
 from bus.session import Bus, SessionConfig
+from mavlink_bridge.modes import OFFBOARD
 from mavlink_bridge.node import BODY_FRAME, BridgeNode
-from mavlink_bridge.offboard_client import OffboardClientConfig
+from mavlink_bridge.offboard_client import (
+    CommandRejected,
+    OffboardClient,
+    OffboardClientConfig,
+    OffboardError,
+)
+from mavlink_bridge.transport import mavlink
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
-from policy.node import PolicyNode
-from sitl.commander import Commander, VehicleSample
+from sitl.commander import Commander, State, VehicleSample
+from sitl.vehicle_service import VehicleService
+
+
+class Graph:
+    """A bridge (own thread), the sim's vehicle service and an offboard client."""
+
+    def __init__(self, command_timeout_s: float = 1.0) -> None:
+        cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+        self.buses = [Bus.open(cfg) for _ in range(3)]
+        api, local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+        self.bridge = BridgeNode(self.buses[0], "uav1",
+                                 VehicleLinkConfig(api=LinkConfig(local, api), gcs=None),
+                                 command_timeout_s=command_timeout_s)
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.bridge.run, args=(self.stop.is_set,),
+                                       daemon=True)
+        self.thread.start()
+        self.commander = Commander()
+        self.service: VehicleService | None = None
+        self.t = 0.0
+        self.client = OffboardClient(OffboardClientConfig(listen_port=api, command_timeout=0.3),
+                                     spin=self.spin)
+        self.test_bus = self.buses[2]
+
+    def start_vehicle(self) -> None:
+        self.service = VehicleService(self.buses[1], "uav1", self.commander, None)
+        self.cmds = self.buses[1].inbox(keys.CMD_VEL, "uav1", maxsize=256)
+        self.service.publish_status(0.0, 0.0, force=True)
+
+    def spin(self) -> None:
+        """What the sim does between two client polls: serve requests, one step."""
+        if self.service is not None:
+            while (msg := self.cmds.get_nowait()) is not None:  # as the sim offers them
+                self.commander.setpoint(self.t, *m.twist_values(msg),
+                                        body=msg.header.frame_id == BODY_FRAME)
+            self.service.serve(self.t)
+            self.commander.step(self.t, VehicleSample(0.0, 0.0, 0.0, 0.0))
+            self.service.publish_status(0.0, self.t)
+            self.t += 0.01
+        time.sleep(0.002)
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5.0)
+        self.client.close()
+        for bus in self.buses:
+            bus.close()
+        self.bridge.close()
 
 
 @pytest.fixture
-def make_graph():
-    opened: list = []
+def graph():
+    made: list[Graph] = []
 
-    def make(lockstep: bool):
-        cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
-        buses = [Bus.open(cfg) for _ in range(3)]
-        api, local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
-        bridge = BridgeNode(buses[0], Commander(), VehicleSample, "uav1",
-                            VehicleLinkConfig(api=LinkConfig(local, api), gcs=None),
-                            lockstep=lockstep, lockstep_timeout_s=0.05)
-        stop = threading.Event()
-        thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
-        thread.start()
-        policy = PolicyNode(buses[1], lambda s: np.array([1.0, 0.5, 0.25, 0.125], np.float32),
-                            "uav1", OffboardClientConfig(listen_port=api), lockstep=lockstep)
-        opened.append((stop, thread, policy, buses, bridge))
-        return bridge, policy, buses[2]
+    def make(**kwargs) -> Graph:
+        made.append(Graph(**kwargs))
+        return made[-1]
 
     yield make
-    for stop, thread, policy, buses, bridge in opened:
-        stop.set()
-        thread.join(5.0)
-        policy.close()
-        for bus in buses:
-            bus.close()
-        bridge.close()
+    for g in made:
+        g.close()
 
 
-def odom(k: int, z: float = 10.0):
-    return m.odometry((0.0, 0.0, z), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0, 1.0), k / 10)
+def test_commands_reach_the_sims_commander(graph) -> None:
+    g = graph()
+    with pytest.raises(OffboardError):  # no status from a vehicle yet: no heartbeat
+        g.client.wait_heartbeat(0.5)
+    g.start_vehicle()
+    g.client.wait_heartbeat(5.0)
+    assert not g.client.armed
+    g.client.arm()
+    assert g.commander.state == State.ARMED
+    assert g.client.wait(lambda: g.client.armed, 2.0)  # the heartbeat follows the answer
+    with pytest.raises(CommandRejected) as err:  # refused by the sim's commander: DENIED
+        g.client.takeoff(500.0)
+    assert err.value.result == mavlink.MAV_RESULT_DENIED
+    g.client.takeoff(2.0)
+    assert g.commander.state == State.TAKEOFF
+    g.client.set_velocity_body(0.0, 0.0, 0.0, 0.0)
+    g.client.start_offboard()  # stream, switch, heartbeat shows OFFBOARD
+    assert g.commander.state == State.OFFBOARD and g.client.mode == OFFBOARD
+    texts = [t for _, t in g.client.statustexts]  # every event, refusals included
+    assert texts[:2] == ["Armed", "Takeoff denied: bad altitude"]
+    assert "Takeoff to 2.0 m" in texts and "Offboard" in texts
+    assert g.bridge.commander.timeouts == 0
 
 
-@pytest.mark.parametrize("lockstep", [False, True], ids=["realtime", "lockstep"])
-def test_offboard_then_setpoint_loss_failsafe(make_graph, lockstep):
-    """Lockstep: the bridge waits for each step's setpoint, and after lockstep_timeout_s
-    of wall time flies on without it, so the failsafe acts as in real time."""
-    bridge, policy, test_bus = make_graph(lockstep)
-    pub_odom = test_bus.publisher(keys.ODOM, "uav1")
-    pub_obs = test_bus.publisher(keys.OBSERVATION, "uav1")
-    cmds = test_bus.inbox(keys.CMD_VEL, "uav1", maxsize=256)
-    assert pub_odom.wait_matched() and pub_obs.wait_matched()
-    policy.start(timeout=10.0)
-    assert str(bridge.commander.state) == "OFFBOARD"
+def test_setpoints_forwarded_with_frame_and_stamp(graph) -> None:
+    g = graph()
+    cmds = g.test_bus.inbox(keys.CMD_VEL, "uav1", maxsize=64)
+    g.start_vehicle()
+    g.client.wait_heartbeat(5.0)
+    g.client.config.setpoint_period = 1e9  # no timer re-sends: one message per call
+    g.client.clock = lambda: g.client._t0 + 1.2345  # time_boot_ms 1234  # noqa: SLF001
+    g.client.set_velocity_body(1.0, 0.5, 0.25, 0.125)
+    g.client._send_setpoint()  # an exact re-send: not forwarded again  # noqa: SLF001
+    g.client.clock = lambda: g.client._t0 + 1.3005  # noqa: SLF001
+    g.client.set_velocity_enu(-1.0, 2.0, 0.0, 0.5)
+    msgs = [cmds.get(timeout=5.0), cmds.get(timeout=5.0)]
+    assert msgs[0].header.frame_id == BODY_FRAME
+    assert m.nanoseconds(msgs[0].header.stamp) == 1_234_000_000
+    assert m.twist_values(msgs[0]) == (1.0, 0.5, 0.25, 0.125)
+    assert msgs[1].header.frame_id == "world"
+    assert m.nanoseconds(msgs[1].header.stamp) == 1_300_000_000
+    assert m.twist_values(msgs[1]) == (-1.0, 2.0, 0.0, 0.5)
+    wait_for(lambda: g.bridge.resends == 1 and g.bridge.published == 2, what="counters")
+    assert cmds.get_nowait() is None
 
-    for k in range(5):  # the policy answers each step; the bridge forwards, stamped
-        pub_odom.put(odom(k))
-        if not lockstep:  # real time forwards only answers to steps the bridge has seen
-            wait_for(lambda k=k: bridge._last_stamp == k * 100_000_000, what=f"odom {k}")
-        pub_obs.put(m.observation(np.zeros(35, np.float32), k / 10, 0, k))
-        policy.spin_once(timeout=5.0)
-        msg = cmds.get(timeout=5.0)
-        assert msg.header.frame_id == BODY_FRAME
-        assert m.nanoseconds(msg.header.stamp) == k * 100_000_000
-        assert m.twist_values(msg) == (1.0, 0.5, 0.25, 0.125)
 
-    policy.close()  # the policy process dies: no more setpoints
-    for k in range(5, 80):  # 7.5 s of stack time
-        pub_odom.put(odom(k))
-        wait_for(lambda k=k: bridge._last_stamp == k * 100_000_000, what=f"odom {k}")
-    wait_for(lambda: bridge.published >= (80 if lockstep else 5 + 60), what="commands")
-    seen = []
-    while (msg := cmds.get_nowait()) is not None:
-        seen.append((m.nanoseconds(msg.header.stamp) // 100_000_000, msg.header.frame_id,
-                     m.twist_values(msg)))
-    if lockstep:  # the last setpoint is flown until the timeout, one command per step
-        assert [k for k, _, _ in seen] == list(range(5, 80))
-        assert all(f == BODY_FRAME for k, f, _ in seen if k < 14)
-        assert bridge.missed >= 9
-        seen = [x for x in seen if x[1] == "world"]
-    assert all(frame == "world" for _, frame, _ in seen)
-    first = seen[0][0]
-    assert 14 <= first <= 16  # > 1.0 s after the last setpoint (step 4): HOLD
-    assert seen[0][2] == (0.0, 0.0, 0.0, 0.0)
-    assert seen[-1][2][2] < 0.0  # then LAND: descending
-    assert str(bridge.commander.state) == "LAND"
+def test_a_vehicle_that_does_not_answer_is_busy(graph) -> None:
+    g = graph(command_timeout_s=0.2)
+    silent = g.buses[1].queryable(keys.COMMAND, "uav1")  # declared, never answered
+    status = g.buses[1].publisher(keys.STATUS, "uav1")
+    assert status.wait_matched()
+    status.put(m.vehicle_status(0.0, 0.0, 0, "DISARMED", False, True, None, False))
+    g.client.spin = lambda: time.sleep(0.002)
+    g.client.wait_heartbeat(5.0)
+    result = g.client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
+    assert result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+    assert g.bridge.commander.timeouts >= 1 and len(silent.take()) >= 1  # it was asked

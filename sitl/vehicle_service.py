@@ -1,0 +1,156 @@
+"""The commander on the bus: requests, status, parameters (the sim's side of issue 5).
+
+:class:`VehicleService` wraps the :class:`~sitl.commander.Commander` that the simulator
+node steps. Nothing here runs in Zenoh's threads and nothing blocks: the node calls
+:meth:`VehicleService.serve` whenever it has a moment (every control step, and every
+few milliseconds while it waits), so requests are answered within a step.
+
+* **Requests** (``skyloop/<vehicle>/command``, a Zenoh query, ``VehicleCommand`` ->
+  ``CommandAck``): ``arm``, ``disarm`` (``param1 == 1``: forced), ``takeoff``
+  (``param1``: altitude above the takeoff point, NaN: default), ``land``, ``rtl`` and
+  ``set_mode`` (``mode``: OFFBOARD, HOLD, LAND, TAKEOFF, RTL). The answer carries the
+  commander's verdict and its state right after it. Unknown commands: ``unsupported``.
+* **Status** (``skyloop/<vehicle>/status``, ``VehicleStatus``): published when the
+  state or the flags change or events happened (transitions, failsafes, refusals: each
+  becomes a STATUSTEXT at the bridge), and at least every ``keepalive_s`` of wall time.
+  ``revision`` counts changes so a reader keeps the newest of a status and an answer.
+* **Parameters** (``skyloop/<vehicle>/params``, ``Parameter``): names of
+  :mod:`bus.params`; the sim's are applied at once (see :func:`apply_param`), those of
+  other nodes ignored; invalid ones (unknown, out of range, not finite) are counted in
+  ``param_rejects`` and logged.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from typing import Any
+
+from bus import keys, params
+from bus import messages as m
+from bus.node import Bus
+from sitl.commander import Commander, Verdict
+
+log = logging.getLogger("skyloop.sim")
+
+
+def apply_param(name: str, value: float, commander: Commander, vehicle: Any) -> bool:
+    """Apply a checked sim parameter to the commander and the vehicle's autopilot; False
+    if ``name`` is not applied by the sim."""
+    c = commander.config
+    if name == "COM_OF_LOSS_T":
+        c.setpoint_timeout = value
+    elif name == "SKY_HOLD_LAND_T":
+        c.hold_before_land = value
+    elif name == "MPC_XY_VEL_MAX":
+        vehicle.autopilot.max_speed_xy = value
+        c.rtl_speed = value
+    elif name == "MPC_Z_VEL_MAX":
+        vehicle.autopilot.max_speed_z = value
+        c.rtl_climb_speed = value
+    elif name == "GF_MAX_HOR_DIST":
+        c.geofence = value
+    elif name == "SKY_FLIGHT_LVL":
+        c.flight_level = value
+    else:
+        return False
+    return True
+
+
+class VehicleService:
+    """Requests, status and parameters of one vehicle's commander (module docstring)."""
+
+    def __init__(self, bus: Bus, vehicle: str, commander: Commander, vehicle_model: Any,
+                 keepalive_s: float = 1.0) -> None:
+        self.commander, self.vehicle_model = commander, vehicle_model
+        self.keepalive_s = keepalive_s
+        self.requests = bus.queryable(keys.COMMAND, vehicle)
+        self.params = bus.inbox(keys.PARAMS, vehicle, maxsize=256)
+        self.status_pub = bus.publisher(keys.STATUS, vehicle)
+        self.revision = 0
+        self.param_rejects = 0
+        self.answered: Counter[str] = Counter()  # "<command>.<accepted|reason>"
+        self._events: list[tuple[str, str, str]] = []
+        self._fields: tuple | None = None
+        self._next_keepalive = 0.0
+
+    # ------------------------------------------------------------------ parameters
+    def set_param(self, name: str, value: float) -> bool:
+        """Validate and apply one parameter; False (counted, logged) if rejected."""
+        try:
+            v = params.check(name, value)
+        except ValueError as err:
+            self.param_rejects += 1
+            log.warning("parameter rejected: %s", err)
+            return False
+        if apply_param(name, v, self.commander, self.vehicle_model):
+            log.info("parameter %s = %g", name, v)
+        return True
+
+    def _take_params(self) -> None:
+        while (msg := self.params.get_nowait()) is not None:
+            self.set_param(msg.name, msg.value)
+
+    # ------------------------------------------------------------------ requests
+    def _verdict(self, now: float, msg: Any) -> Verdict:
+        c, cmd, p1 = self.commander, msg.command, float(msg.param1)
+        if cmd == "arm":
+            return c.arm(now)
+        if cmd == "disarm":
+            return c.disarm(now, force=p1 == 1.0)
+        if cmd == "takeoff":
+            return c.takeoff(now, None if math.isnan(p1) else p1)
+        if cmd == "land":
+            return c.land(now)
+        if cmd == "rtl":
+            return c.set_mode(now, "RTL")
+        if cmd == "set_mode":
+            return c.set_mode(now, msg.mode)
+        return Verdict(False, "unsupported")
+
+    def serve(self, now: float) -> int:
+        """Answer every waiting request and apply every waiting parameter; how many
+        requests were answered."""
+        self._take_params()
+        requests = self.requests.take()
+        for req in requests:
+            verdict = self._verdict(now, req.msg)
+            self.answered[f"{req.msg.command}.{verdict.reason or 'accepted'}"[:40]] += 1
+            self._collect()
+            c = self.commander
+            req.reply(m.command_ack(verdict.accepted, verdict.reason, str(c.state), c.armed,
+                                    c.landed, c.failsafe, self.revision))
+        return len(requests)
+
+    # ------------------------------------------------------------------ status
+    def _collect(self) -> bool:
+        """Take the commander's events and note a change; True if anything changed."""
+        c = self.commander
+        events = c.pop_events()
+        self._events.extend((e.text, e.kind, e.severity) for e in events)
+        fields = (str(c.state), c.armed, c.landed, c.failsafe_reason, c.crashed, c.home)
+        changed = bool(events) or fields != self._fields
+        if changed:
+            self.revision += 1
+            self._fields = fields
+            for e in events:
+                log.info("commander at %.1f s: %s", e.time, e.text)
+        return changed
+
+    def publish_status(self, stamp_s: float, now: float, force: bool = False) -> bool:
+        """Publish the status if something changed since the last one, the keepalive
+        is due, or ``force``; True if published."""
+        changed = self._collect()
+        wall = time.monotonic()
+        if not (changed or self._events or force or wall >= self._next_keepalive):
+            return False
+        c = self.commander
+        home = (*c.home, 0.0) if c.home is not None else (math.nan, math.nan, math.nan)
+        self.status_pub.put(m.vehicle_status(stamp_s, now, self.revision, str(c.state),
+                                             c.armed, c.landed, c.failsafe_reason, c.crashed,
+                                             home, self._events))
+        self._events = []
+        self._next_keepalive = wall + self.keepalive_s
+        return True
