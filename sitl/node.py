@@ -259,10 +259,7 @@ class SimNode:
         truth = s.vehicle.truth
         if abs(float(truth.velocity[2])) > TOUCHDOWN_SPEED:
             return False
-        p = truth.position.copy()
-        r = s.config.body_radius
-        p[2] = max(p[2], float(s.world.terrain_height(p[0], p[1])) + r + 0.01)
-        return not s.world.collides(p, r, s.time)
+        return not s.world.collides_off_terrain(truth.position, s.config.body_radius, s.time)
 
     def tick(self, episode: int | None) -> bool:
         """One control period (``episode`` None: the ground phase, nothing published but

@@ -148,6 +148,13 @@ class World:
                                          float(position[2]), float(radius), float(t),
                                          *self._static_args, *self._air_args))
 
+    def collides_off_terrain(self, position: np.ndarray, radius: float, t: float) -> bool:
+        """Like :meth:`collides` without the terrain: obstacles and aircraft only (a
+        vehicle standing or landing on the terrain touches it without crashing)."""
+        x, y, z, r = float(position[0]), float(position[1]), float(position[2]), float(radius)
+        return bool(collide.sphere_hits_solids(x, y, z, r, *self._static_args[4:])
+                    or collide.sphere_hits_aircraft(x, y, z, r, float(t), *self._air_args))
+
     def collides_static(self, position: np.ndarray, radius: float) -> bool:
         """Like :meth:`collides` without the aircraft."""
         return bool(collide.collides_static(float(position[0]), float(position[1]),
