@@ -147,6 +147,7 @@ class SimNode:
         self._pending_goal: np.ndarray | None = None
         self._resume = State.HOLD  # the mode a placed episode continues in
         self.results: list[dict] = []
+        self.stopping = threading.Event()  # set: end the episode (aborted) and the run
         self.timing = {"publish_s": 0.0, "wait_s": 0.0, "step_s": 0.0}  # where wall time went
 
     # ------------------------------------------------------------------ clocks
@@ -342,7 +343,7 @@ class SimNode:
             path.append(truth.position.copy())
             outcome = outcome_of(collided, s.goal_distance(), float(truth.position[2]),
                                  s.steps, c.goal_radius, c.goal_max_altitude, max_steps)
-            if outcome is None and self._pending_goal is not None:
+            if outcome is None and (self._pending_goal is not None or self.stopping.is_set()):
                 outcome = "aborted"
             if outcome is not None:
                 break
@@ -378,7 +379,7 @@ class SimNode:
         started = threading.Event()
         if go is not None:
             threading.Thread(target=lambda: (go(), started.set()), daemon=True).start()
-        while not started.is_set():
+        while not (started.is_set() or self.stopping.is_set()):
             if go is None and (self.config.free_flight
                                or self.commander.state == State.OFFBOARD):
                 return
@@ -409,7 +410,8 @@ class SimNode:
         goal = s.goal.copy() if c.free_flight else None
         i = 0
         try:
-            while i < c.episodes or (c.free_flight and c.episodes <= 0):
+            while (i < c.episodes or (c.free_flight and c.episodes <= 0)) \
+                    and not self.stopping.is_set():
                 r = self.run_episode(i, goal)
                 self.results.append(r)
                 emit(EPISODE_LINE + json.dumps(r))

@@ -1,0 +1,73 @@
+"""The simulator node's bus inputs, in process over real loopback Zenoh with JSBSim:
+parameters on ``params`` (applied, or counted as rejected) and goals on ``goal`` (the
+running episode ends ``aborted``, the next starts where the vehicle is, toward it)."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from loopback import free_port, wait_for
+
+from bus import keys
+from bus import messages as m
+from bus.session import Bus, SessionConfig
+from sitl.node import SimNode, SimNodeConfig
+
+
+@pytest.fixture
+def free_sim():
+    """A free-flight sim (real time, on the ground) running in a thread; a test bus."""
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    sim_bus, bus = Bus.open(cfg), Bus.open(cfg)
+    events: list = []
+    bus.subscribe(keys.EPISODE, "uav1", events.append)
+    node = SimNode(sim_bus, SimNodeConfig(free_flight=True, episodes=0, realtime=True,
+                                          match_timeout_s=0.1,
+                                          params={"SKY_HOLD_LAND_T": 2.0}))
+    lines: list[str] = []
+    thread = threading.Thread(target=node.run, args=(lines.append,), daemon=True)
+    thread.start()
+    wait_for(lambda: any(e.event == m.START for e in events), timeout=60.0, what="START")
+    yield node, bus, events
+    node.stopping.set()
+    thread.join(10.0)
+    assert not thread.is_alive()
+    assert any(line.startswith("SKYLOOP-SUMMARY") for line in lines)
+    sim_bus.close()
+    bus.close()
+
+
+def test_parameters_from_the_bus(free_sim) -> None:
+    node, bus, _ = free_sim
+    assert node.commander.config.hold_before_land == 2.0  # from the config (--param)
+    pub = bus.publisher(keys.PARAMS, "uav1")
+    assert pub.wait_matched()
+    for name, value in (("COM_OF_LOSS_T", 99.0), ("NO_SUCH_PARAM", 1.0),
+                        ("MPC_XY_VEL_MAX", float("nan")), ("SKY_ICO_RADIUS", 5.0),
+                        ("COM_OF_LOSS_T", 2.5), ("MPC_XY_VEL_MAX", 1.0),
+                        ("GF_MAX_HOR_DIST", 25.0), ("SKY_FLIGHT_LVL", 6.0)):
+        pub.put(m.parameter(name, value))
+    wait_for(lambda: node.commander.config.flight_level == 6.0, what="parameters applied")
+    c = node.commander.config
+    assert (c.setpoint_timeout, c.rtl_speed, c.geofence) == (2.5, 1.0, 25.0)
+    assert node.sim.vehicle.autopilot.max_speed_xy == 1.0
+    assert node.service.param_rejects == 3  # out of range, unknown, NaN; perception's ok
+
+
+def test_goal_from_the_bus_starts_a_new_episode(free_sim) -> None:
+    node, bus, events = free_sim
+    pub = bus.publisher(keys.GOAL, "uav1")
+    assert pub.wait_matched()
+    here = node.sim.vehicle.truth.position.copy()
+    goal = here + np.array([10.0, -5.0, 3.5])
+    pub.put(m.pose_stamped(goal, 0.0))
+    wait_for(lambda: sum(e.event == m.START for e in events) == 2, what="a second START")
+    end = next(e for e in events if e.event == m.END)
+    assert m.outcome_name(end) == "aborted" and end.episode == 0
+    start = [e for e in events if e.event == m.START][1]
+    assert start.episode == 1
+    assert (start.goal.x, start.goal.y, start.goal.z) == tuple(goal)
+    assert np.linalg.norm(np.array([start.start.x, start.start.y, start.start.z]) - here) < 0.2
+    assert node.results[0]["outcome"] == "aborted"
