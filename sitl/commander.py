@@ -61,7 +61,6 @@ from collections import deque
 
 from sitl.commander_types import (
     ACCEPTED,
-    AIRBORNE_STATES,
     EPS,
     ZERO,
     CommanderConfig,
@@ -72,8 +71,8 @@ from sitl.commander_types import (
     Verdict,
 )
 
-__all__ = ["ACCEPTED", "AIRBORNE_STATES", "EPS", "ZERO", "Commander", "CommanderConfig",
-           "CommanderEvent", "Setpoint", "State", "VehicleSample", "Verdict"]
+__all__ = ["ACCEPTED", "EPS", "ZERO", "Commander", "CommanderConfig",
+           "CommanderEvent", "Setpoint", "State", "VehicleSample", "Verdict"]  # re-exported
 
 class Commander:
     """PX4-like commander for one vehicle (see the module docstring)."""

@@ -25,10 +25,6 @@ class State(StrEnum):
     RTL = "RTL"  # return to home: climb, fly back, descend, touch down, disarm
 
 
-#: States in which the vehicle is flown by the commander in the air.
-AIRBORNE_STATES = (State.TAKEOFF, State.OFFBOARD, State.HOLD, State.LAND, State.RTL)
-
-
 @dataclass
 class CommanderConfig:
     """Commander parameters (PX4 / ``bus.params`` names in brackets)."""

@@ -69,253 +69,28 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from bus import keys
 from bus import messages as m
-from bus.node import Bus
-from sitl.commander import Commander, State, VehicleSample
-from sitl.episode import EpisodeConfig, EpisodeSim
-from sitl.flight_model import REST_HEIGHT
+from sitl.commander import State
+from sitl.node_step import BODY_FRAME, POLL_S, SimNodeConfig, StepLoop
 from sitl.node_util import outcome_of, quat_from_matrix, quat_from_yaw
-from sitl.vehicle_service import VehicleService
 
 __all__ = ["BODY_FRAME", "EPISODE_LINE", "READY_LINE", "SUMMARY_LINE", "SimNode",
            "SimNodeConfig", "outcome_of", "quat_from_matrix", "quat_from_yaw"]
 
 log = logging.getLogger("skyloop.sim")
-BODY_FRAME = "base_link"
-YAW_SUFFIX = "|yaw"
 EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "
 READY_LINE = "SKYLOOP-SIM-READY"
-TOUCHDOWN_SPEED = 1.0  # m/s, a gentler terrain contact outside OFFBOARD is a landing
-POLL_S = 0.01  # s, how often requests are served while the node waits
 
 
-@dataclass
-class SimNodeConfig:
-    """What the simulator node runs (env rules are the env's defaults)."""
+class SimNode(StepLoop):
+    """Runs the vehicle and its episodes over a bus (see the module docstring)."""
 
-    scenario: str = "valley"
-    episodes: int = 1  # free flight: 0 = until stopped
-    seed: int = 0
-    vehicle: str = "uav1"
-    realtime: bool = False
-    max_steps: int = 300
-    goal_radius: float = 2.0
-    goal_max_altitude: float = 6.0
-    match_timeout_s: float = 10.0  # wait for subscribers before the first episode
-    free_flight: bool = False
-    lockstep_timeout_s: float = 2.0
-    params: dict[str, float] = field(default_factory=dict)  # bus.params names
-    episode: EpisodeConfig = field(default_factory=EpisodeConfig)
-
-
-class SimNode:
-    """Runs the vehicle and its episodes over a :class:`Bus` (see the module docstring)."""
-
-    def __init__(self, bus: Bus, config: SimNodeConfig) -> None:
-        self.bus = bus
-        self.config = c = config
-        c.episode.scenario = c.scenario
-        self.sim = EpisodeSim(c.episode)
-        self.period_ns = round(self.sim.vehicle.config.control_period * 1e9)
-        self.period = self.period_ns / 1e9
-        v = c.vehicle
-        self.pub = {t: bus.publisher(t, v) for t in (keys.EPISODE, keys.CLOCK, keys.ODOM,
-                                                      keys.TRUTH, keys.LIDAR_POINTS)}
-        self.cmds = bus.inbox(keys.CMD_VEL, v, maxsize=256)
-        self.goals = bus.inbox(keys.GOAL, v, maxsize=16)
-        self.commander = Commander()
-        self.service = VehicleService(bus, v, self.commander, self.sim.vehicle)
-        for name, value in c.params.items():
-            if not self.service.set_param(name, value):
-                raise ValueError(f"bad parameter {name}={value!r} (see bus/params.py)")
-        self.g = 0  # episode control steps over the run (stamps)
-        self.vsteps = 0  # every control step flown (the commander's clock)
-        self.stale = 0  # commands whose stamp was not the current step's
-        self.late = 0  # real time: steps flown on an older command
-        self.missed = 0  # lockstep: OFFBOARD steps flown without their command
-        self.latencies_ms: list[float] = []
-        self._missing = False
-        self._last_cmd: Any = None
-        self._next_tick: float | None = None
-        self._pending_goal: np.ndarray | None = None
-        self._resume = State.HOLD  # the mode a placed episode continues in
-        self.results: list[dict] = []
-        self.stopping = threading.Event()  # set: end the episode (aborted) and the run
-        self.timing = {"publish_s": 0.0, "wait_s": 0.0, "step_s": 0.0}  # where wall time went
-
-    # ------------------------------------------------------------------ clocks
-    def _stamp(self) -> float:
-        return self.g * self.period_ns / 1e9
-
-    def now(self) -> float:
-        """The commander's clock: control steps flown since start, in seconds."""
-        return self.vsteps * self.period_ns / 1e9
-
-    def _serve_until(self, deadline: float) -> None:
-        """Serve requests (and take commands) until the wall-clock ``deadline``."""
-        while True:
-            self._drain_commands()
-            self.service.serve(self.now())
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return
-            time.sleep(min(POLL_S, remaining))
-
-    def _pace(self) -> float:
-        """Wait for this step's wall-clock tick; return the step's deadline."""
-        if self._next_tick is None:
-            self._next_tick = time.monotonic()
-        self._serve_until(self._next_tick)
-        self._next_tick = max(self._next_tick + self.period, time.monotonic() - self.period)
-        return self._next_tick
-
-    # ------------------------------------------------------------------ publishing
-    def _publish_step(self, episode: int, step: int) -> float:
-        """Publish clock, odometry, truth and scan of the current state; return the wall
-        time of the scan publish."""
-        s, stamp = self.sim, self._stamp()
-        est, truth = s.vehicle.estimate, s.vehicle.truth
-        self.pub[keys.CLOCK].put(m.step_clock(step, stamp, episode))
-        self.pub[keys.ODOM].put(m.odometry(est.position, est.velocity, quat_from_yaw(est.yaw),
-                                           stamp))
-        self.pub[keys.TRUTH].put(m.odometry(truth.position, truth.velocity,
-                                            quat_from_matrix(truth.rotation), stamp))
-        cloud = m.pointcloud(s.scan(), stamp)
-        t_pub = time.monotonic()
-        self.pub[keys.LIDAR_POINTS].put(cloud)
-        return t_pub
-
-    # ------------------------------------------------------------------ commands
-    def _offer(self, msg: Any) -> None:
-        """Offer a ``cmd_vel`` to the commander (see the module docstring's frames)."""
-        vx, vy, vz, wz = m.twist_values(msg)
-        frame = msg.header.frame_id
-        heading = frame.endswith(YAW_SUFFIX)
-        self.commander.setpoint(self.now(), vx, vy, vz, 0.0 if heading else wz,
-                                body=frame.startswith(BODY_FRAME),
-                                yaw=wz if heading else None)
-
-    def _drain_commands(self) -> None:
-        while (msg := self.cmds.get_nowait()) is not None:
-            self._offer(msg)
-            self._last_cmd = msg
-
-    def _wait_command(self, t_pub: float, deadline: float | None) -> Any:
-        """The command stamped with the current step. Lockstep (``deadline`` None): wait
-        for it (see the module docstring for the timeout), None if it did not come;
-        real time: until ``deadline``, then the newest command seen."""
-        want = self.g * self.period_ns
-        if deadline is None:
-            wait = self.period if self._missing else self.config.lockstep_timeout_s
-            give_up = time.monotonic() + wait
-        while True:
-            end = give_up if deadline is None else deadline
-            remaining = end - time.monotonic()
-            if remaining <= 0:
-                if deadline is not None:
-                    self.late += 1
-                    return self._last_cmd
-                self.missed += 1
-                if not self._missing:
-                    log.warning("lockstep: no command for stack time %.1f s within %.1f s "
-                                "(wall); stepping without it", want / 1e9, wait)
-                self._missing = True
-                return None
-            try:
-                msg = self.cmds.get(timeout=min(POLL_S, remaining))
-            except TimeoutError:
-                self.service.serve(self.now())
-                if self.commander.state != State.OFFBOARD:  # a request changed the mode
-                    return None
-                continue
-            self._offer(msg)
-            stamp = m.nanoseconds(msg.header.stamp)
-            if stamp == want:
-                self.latencies_ms.append((time.monotonic() - t_pub) * 1e3)
-                self._last_cmd, self._missing = msg, False
-                return msg
-            self.stale += 1
-            if deadline is not None and stamp < want:
-                self._last_cmd = msg
-
-    # ------------------------------------------------------------------ one step
-    def _sample(self) -> VehicleSample:
-        s = self.sim
-        est, truth = s.vehicle.estimate, s.vehicle.truth
-        x, y, z = (float(v) for v in truth.position)
-        agl = z - float(s.world.terrain_height(x, y)) - REST_HEIGHT
-        return VehicleSample(float(est.position[2]), float(est.velocity[2]), est.yaw, agl,
-                             float(est.position[0]), float(est.position[1]))
-
-    def _touchdown(self) -> bool:
-        """A gentle terrain contact with nothing else touched (see the module doc)."""
-        s = self.sim
-        truth = s.vehicle.truth
-        if abs(float(truth.velocity[2])) > TOUCHDOWN_SPEED:
-            return False
-        return not s.world.collides_off_terrain(truth.position, s.config.body_radius, s.time)
-
-    def tick(self, episode: int | None) -> bool:
-        """One control period (``episode`` None: the ground phase, nothing published but
-        the status); returns whether the vehicle collided."""
-        c, s, cmdr = self.config, self.sim, self.commander
-        offboard = cmdr.state == State.OFFBOARD
-        gated = episode is not None and offboard and not c.realtime
-        t0 = time.perf_counter()
-        deadline = None
-        if gated:
-            self._next_tick = None
-        else:
-            deadline = self._pace()
-        t1 = t_pubbed = time.perf_counter()
-        msg = None
-        if episode is not None:
-            t_pub = self._publish_step(episode, s.steps)
-            t_pubbed = time.perf_counter()
-            if offboard:
-                msg = self._wait_command(t_pub, deadline)
-        if not (episode is not None and offboard):
-            self._drain_commands()
-        t2 = time.perf_counter()
-        now = self.now()
-        self.service.serve(now)
-        if (goal := self.goals.get_nowait()) is not None:
-            while (newer := self.goals.get_nowait()) is not None:
-                goal = newer
-            self._pending_goal = m.pose_values(goal)[0]
-        out = cmdr.step(now, self._sample())
-        env_rules = episode is not None and not c.free_flight and cmdr.state == State.OFFBOARD
-        if not env_rules:
-            x, y = s.vehicle.truth.position[:2]
-            s.vehicle.set_ground(float(s.world.terrain_height(x, y)))
-        if cmdr.state == State.OFFBOARD and msg is not None and \
-                msg.header.frame_id == BODY_FRAME:
-            collided = s.step_body(np.array(m.twist_values(msg), dtype=np.float64))
-        else:
-            motors = cmdr.armed and cmdr.state != State.ARMED
-            collided = s.step_world(np.array(out, dtype=np.float64), motors)
-        self.vsteps += 1
-        if episode is not None:
-            self.g += 1
-        if collided and not env_rules and self._touchdown():
-            collided = False
-        self._resume = cmdr.state  # the mode the next placed episode continues in
-        if collided:
-            cmdr.collision(self.now())
-        self.service.publish_status(self._stamp(), self.now())
-        self.timing["publish_s"] += t_pubbed - t1
-        self.timing["wait_s"] += (t1 - t0) + (t2 - t_pubbed)
-        self.timing["step_s"] += time.perf_counter() - t2
-        return collided
-
-    # ------------------------------------------------------------------ episodes
     def wait_subscribers(self) -> None:
         """Wait (bounded) until something listens to the scan, clock and episode topics."""
         for t in (keys.LIDAR_POINTS, keys.CLOCK, keys.EPISODE):
