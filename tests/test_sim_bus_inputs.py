@@ -1,6 +1,7 @@
 """The simulator node's bus inputs, in process over real loopback Zenoh with JSBSim:
-parameters on ``params`` (applied, or counted as rejected) and goals on ``goal`` (the
-running episode ends ``aborted``, the next starts where the vehicle is, toward it)."""
+parameters on ``params`` (applied, or counted as rejected), goals on ``goal`` (the
+running episode ends ``aborted``, the next starts where the vehicle is, toward it), and
+commander requests on ``command`` flying a geofence breach into RTL."""
 
 from __future__ import annotations
 
@@ -71,3 +72,51 @@ def test_goal_from_the_bus_starts_a_new_episode(free_sim) -> None:
     assert (start.goal.x, start.goal.y, start.goal.z) == tuple(goal)
     assert np.linalg.norm(np.array([start.start.x, start.start.y, start.start.z]) - here) < 0.2
     assert node.results[0]["outcome"] == "aborted"
+
+
+def test_geofence_rtl_under_jsbsim(free_sim) -> None:
+    """Arm and take off by bus requests, fly OFFBOARD east on cmd_vel (as the bridge
+    forwards them) past a 3 m geofence: RTL climbs, flies home, lands, disarms."""
+    node, bus, _ = free_sim
+    states: list[str] = []
+    texts: list[str] = []
+
+    def on_status(msg) -> None:
+        if not states or states[-1] != msg.state:
+            states.append(str(msg.state))
+        texts.extend(msg.event_texts)
+
+    bus.subscribe(keys.STATUS, "uav1", on_status)
+    params, cmds = bus.publisher(keys.PARAMS, "uav1"), bus.publisher(keys.CMD_VEL, "uav1")
+    assert params.wait_matched() and cmds.wait_matched()
+    params.put(m.parameter("GF_MAX_HOR_DIST", 3.0))
+    wait_for(lambda: node.commander.config.geofence == 3.0, what="geofence set")
+
+    def request(command: str, mode: str = "") -> bool:
+        ack = bus.query(keys.COMMAND, "uav1", m.vehicle_command(command, mode),
+                        m.COMMAND_ACK, timeout=2.0)
+        return ack is not None and bool(ack.accepted)
+
+    assert request("arm") and request("takeoff")
+    wait_for(lambda: node.commander.state == "HOLD", timeout=30.0, what="takeoff done")
+    home = node.sim.vehicle.truth.position.copy()
+    t = [100.0]
+
+    def stream(seconds: float) -> None:  # 1 m/s east, world frame, 10 Hz
+        for _ in range(int(seconds * 10)):
+            t[0] += 0.1
+            cmds.put(m.twist_stamped(1.0, 0.0, 0.0, 0.0, t[0]))
+            threading.Event().wait(0.1)
+
+    stream(1.0)
+    assert request("set_mode", "OFFBOARD")
+    stream(8.0)
+    wait_for(lambda: node.commander.state == "RTL", timeout=10.0, what="geofence RTL")
+    assert node.commander.failsafe_reason == "geofence"
+    wait_for(lambda: node.commander.state == "DISARMED", timeout=60.0, what="RTL landed")
+    here = node.sim.vehicle.truth.position
+    assert np.hypot(*(here - home)[:2]) < 1.0  # home (within the arrival radius + drift)
+    assert node.commander.landed and not node.commander.crashed
+    wait_for(lambda: "Landed home, disarmed" in texts, what="status events")
+    assert states[-3:] == ["OFFBOARD", "RTL", "DISARMED"], states
+    assert "Failsafe: geofence, returning home" in texts
