@@ -8,9 +8,13 @@ runs in-process (tests, a single-process sim) and later behind Zenoh:
 * :class:`VehicleTelemetry` -- the vehicle state the bridge reports, in ENU/FLU (into the
   bridge: ``VehicleLink.update_telemetry``, later a bus subscriber);
 * :class:`CommanderLike` -- the vehicle's commander as the bridge sees it: arm, disarm,
-  takeoff, land, set mode, each answered with a :class:`Verdict`; plus the state the
-  heartbeat reports. ``sitl.commander.Commander`` satisfies it structurally; a bus proxy
-  to a commander in another process can satisfy it too.
+  takeoff, land, set mode (RTL included), each answered with a :class:`Verdict`; plus
+  the state the heartbeat reports. The commander lives in the simulator process
+  (``sitl.commander.Commander``, which satisfies this structurally and is what the
+  in-process tests use); the bridge node uses ``mavlink_bridge.node.CommanderProxy``,
+  which sends each request to it as a Zenoh query and reports its published status
+  (a request it cannot get answered in time is refused as ``"busy"``). Goals (missions,
+  DO_REPOSITION) go to the vehicle on the ``goal`` topic, not through this protocol.
 
 Verdict reasons are short strings. The bridge maps them to MAV_RESULT:
 ``"no_setpoint_stream"``/``"busy"`` -> TEMPORARILY_REJECTED, ``"unsupported_mode"``/

@@ -272,7 +272,8 @@ def _summary(graph: Graph, args: argparse.Namespace, wall_s: float) -> dict[str,
     n = s.get("episodes", 0)
     s.update(policy=args.policy or "shipped", router=bool(args.router), log=graph.log_path,
              total_wall_s=wall_s)
-    rates = ", ".join(f"{o} {s.get(o, 0)}/{n}" for o in ("success", "collision", "timeout"))
+    outcomes = ("success", "collision", "timeout") + (("aborted",) if s.get("aborted") else ())
+    rates = ", ".join(f"{o} {s.get(o, 0)}/{n}" for o in outcomes)
     lat = (f", latency p50 {s['latency_ms_p50']:.2f} ms p99 {s['latency_ms_p99']:.2f} ms"
            if "latency_ms_p50" in s else "")
     print(f"summary: {n} episodes on {s.get('scenario')} ({s.get('mode')}): {rates}; "
@@ -292,7 +293,8 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p.add_argument("--seed", type=int, default=1000, help="episode i uses seed + i")
     p.add_argument("--max-steps", type=int, default=300, help="episode timeout (env: 300)")
     p.add_argument("--policy", default="shipped",
-                   help="actor file, 'scripted', 'none' or 'shipped' (default)")
+                   help="actor file, 'scripted', 'none' (no policy: the vehicle waits on "
+                        "the ground for a ground station) or 'shipped' (default)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--lockstep", dest="realtime", action="store_false", default=False)
     g.add_argument("--realtime", dest="realtime", action="store_true")
