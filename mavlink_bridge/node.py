@@ -71,6 +71,7 @@ class CommanderProxy:
         self.bus, self.vehicle, self.timeout_s = bus, vehicle, timeout_s
         self.timeouts = 0
         self.revision = -1
+        self._vehicle_time = -math.inf  # of the newest status (a smaller one: a new sim)
         self._state, self._armed, self._landed, self._failsafe = "DISARMED", False, True, False
 
     # ------------------------------------------------------------------ state
@@ -92,8 +93,13 @@ class CommanderProxy:
 
     def update(self, msg: Any) -> bool:
         """Take a ``VehicleStatus`` or ``CommandAck`` if it is not older than what we
-        have; True if taken."""
-        if int(msg.revision) < self.revision:
+        have (a status whose clock went back comes from a restarted sim: taken); True if
+        taken."""
+        vehicle_time = getattr(msg, "vehicle_time", None)
+        restarted = vehicle_time is not None and vehicle_time < self._vehicle_time
+        if vehicle_time is not None:
+            self._vehicle_time = float(vehicle_time)
+        if int(msg.revision) < self.revision and not restarted:
             return False
         self.revision = int(msg.revision)
         self._state, self._armed = str(msg.state), bool(msg.armed)

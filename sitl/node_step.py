@@ -94,6 +94,7 @@ class StepLoop:
         while True:
             self._drain_commands()
             self.service.serve(self.now())
+            self.service.publish_status(self._stamp(), self.now())  # changes, keepalive
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return
@@ -163,6 +164,7 @@ class StepLoop:
                 msg = self.cmds.get(timeout=min(POLL_S, remaining))
             except TimeoutError:
                 self.service.serve(self.now())
+                self.service.publish_status(self._stamp(), self.now())
                 if self.commander.state != State.OFFBOARD:  # a request changed the mode
                     return None
                 continue

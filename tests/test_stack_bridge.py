@@ -153,3 +153,15 @@ def test_a_vehicle_that_does_not_answer_is_busy(graph) -> None:
     result = g.client.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0)
     assert result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
     assert g.bridge.commander.timeouts >= 1 and len(silent.take()) >= 1  # it was asked
+
+
+def test_proxy_keeps_the_newest_state_and_follows_a_restarted_sim() -> None:
+    from mavlink_bridge.node import CommanderProxy
+
+    proxy = CommanderProxy(None, "uav1")  # update() needs no bus
+    assert proxy.update(m.vehicle_status(0.0, 5.0, 3, "HOLD", True, False, None, False))
+    assert proxy.update(m.command_ack(True, "", "LAND", True, False, False, 4))
+    assert not proxy.update(m.vehicle_status(0.0, 5.1, 3, "HOLD", True, False, None, False))
+    assert proxy.state == "LAND"  # the older status lost to the newer answer
+    assert proxy.update(m.vehicle_status(0.0, 0.0, 0, "DISARMED", False, True, None, False))
+    assert (proxy.state, proxy.armed, proxy.landed) == ("DISARMED", False, True)  # restarted
