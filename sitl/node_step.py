@@ -53,6 +53,9 @@ class StepLoop:
         self.bus = bus
         self.config = c = config
         c.episode.scenario = c.scenario
+        if c.free_flight and not c.realtime:  # nothing answers steps for a ground station
+            log.info("free flight runs in real time")
+            c.realtime = True
         self.sim = EpisodeSim(c.episode)
         self.period_ns = round(self.sim.vehicle.config.control_period * 1e9)
         self.period = self.period_ns / 1e9
@@ -66,6 +69,12 @@ class StepLoop:
         for name, value in c.params.items():
             if not self.service.set_param(name, value):
                 raise ValueError(f"bad parameter {name}={value!r} (see bus/params.py)")
+        area = self.sim.world.scenario.area
+        fence = self.commander.config.geofence
+        if fence > 0 and (area.size_x**2 + area.size_y**2) ** 0.5 > fence:
+            log.warning("scenario %s spans more than GF_MAX_HOR_DIST = %g m: a long flight "
+                        "may end in a geofence RTL (the env has no geofence)", c.scenario,
+                        fence)
         self.g = 0  # episode control steps over the run (stamps)
         self.vsteps = 0  # every control step flown (the commander's clock)
         self.stale = 0  # commands whose stamp was not the current step's
