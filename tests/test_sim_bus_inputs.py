@@ -120,3 +120,19 @@ def test_geofence_rtl_under_jsbsim(free_sim) -> None:
     wait_for(lambda: "Landed home, disarmed" in texts, what="status events")
     assert states[-3:] == ["OFFBOARD", "RTL", "DISARMED"], states
     assert "Failsafe: geofence, returning home" in texts
+
+
+def test_free_flight_episode_ends_at_its_goal(free_sim) -> None:
+    """A goal where the vehicle stands is reached at once: success, and the next episode
+    heads for the next seeded goal (free flight: no timeout, no placement)."""
+    node, bus, events = free_sim
+    pub = bus.publisher(keys.GOAL, "uav1")
+    assert pub.wait_matched()
+    pub.put(m.pose_stamped(node.sim.vehicle.truth.position.copy(), 0.0))
+    wait_for(lambda: sum(e.event == m.START for e in events) == 3, what="a third START")
+    outcomes = [m.outcome_name(e) for e in events if e.event == m.END]
+    assert outcomes[:2] == ["aborted", "success"]
+    third = [e for e in events if e.event == m.START][2]
+    seeded = node.sim.world.sample_start_goal(np.random.default_rng(node.config.seed + 2))[1]
+    assert (third.goal.x, third.goal.y, third.goal.z) == tuple(seeded)
+    assert node.commander.state == "DISARMED"  # it never moved: still on the ground
