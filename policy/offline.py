@@ -35,32 +35,21 @@ from tqdm import tqdm
 
 from bus.log import read_episodes
 from bus.log_reader import EpisodeLogReader
-from bus.messages import (
-    nanoseconds,
-    observation_values,
-    odometry_values,
-    twist_values,
-    yaw_of,
-)
-from perception.observation import FrameStacker
+from bus.messages import nanoseconds, observation_values, odometry_values, twist_values
 from policy.replay import ReplayBuffer
-from policy.rewards import RewardConfig, base_reward, collision_reward, make_goal_reward
+from policy.rewards import RewardConfig, make_goal_reward
 from policy.td3 import TD3, TD3Config
+from policy.transitions import (  # noqa: F401 - Transitions, terminal_observation re-exported
+    FRAMES,
+    OBS_DIM,
+    EpisodeSteps,
+    Transitions,
+    add_episode,
+    terminal_observation,
+    transitions_from_steps,
+)
 
-OBS_DIM, FRAMES = 35, 3
 BODY_FRAME = "base_link"  # cmd_vel in the body-horizontal frame: the policy's action
-
-
-@dataclass
-class Transitions:
-    """One episode rebuilt from a log: T transitions."""
-
-    states: np.ndarray  # (T, 3, 35) float32
-    actions: np.ndarray  # (T, 4) float32
-    rewards: np.ndarray  # (T,) base rewards
-    next_states: np.ndarray  # (T, 3, 35)
-    terminal: bool  # last transition terminal (goal or collision)
-    reached: bool
 
 
 @dataclass
@@ -74,48 +63,35 @@ class LogReport:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
 
 
-def rebuild_episode(episode, config: RewardConfig,
-                    commands: dict[int, tuple] | None = None) -> Transitions:
-    """Transitions of one complete episode; ``ValueError`` names what does not fit.
+def episode_steps(episode, commands: dict[int, tuple] | None = None) -> EpisodeSteps:
+    """Decode a logged episode (``bus.log_reader.Episode``) into :class:`EpisodeSteps`.
 
     ``commands`` (body-frame ``cmd_vel`` of the whole file by stamp) recovers an action
     the recorder saw after the episode's END event: in a stack run commands come from
     the bridge and events from the sim, so the last command can arrive late.
     """
     T = episode.steps
-    goal = np.array([episode.start_event.goal.x, episode.start_event.goal.y,
-                     episode.start_event.goal.z])
-    obs = {int(m.decode().step): observation_values(m.decode())[-1]
-           for m in episode.topic("observation")}
-    truth = [odometry_values(m.decode())[0] for m in episode.topic("truth")]
-    commands = (msg.decode() for msg in episode.topic("cmd_vel"))
-    actions = [twist_values(c) for c in commands if c.header.frame_id == BODY_FRAME]
     if T is None or T < 1:
         raise ValueError("no steps")
+    start = episode.start_event
+    goal = np.array([start.goal.x, start.goal.y, start.goal.z])
+    obs = {int(m.decode().step): observation_values(m.decode())[-1]
+           for m in episode.topic("observation")}
+    truth_msgs = [m.decode() for m in episode.topic("truth")]
+    cmds = (msg.decode() for msg in episode.topic("cmd_vel"))
+    actions = [twist_values(c) for c in cmds if c.header.frame_id == BODY_FRAME]
     if len(actions) != T and commands is not None:
-        stamps = [nanoseconds(msg.decode().header.stamp) for msg in episode.topic("truth")]
+        stamps = [nanoseconds(t.header.stamp) for t in truth_msgs]
         actions = [commands[t] for t in stamps[:T] if t in commands]
-    if len(truth) != T + 1 or len(actions) != T:
-        raise ValueError(f"{len(truth)} truth poses and {len(actions)} actions for T = {T}")
-    if sorted(obs) == list(range(T)):  # a stack log: no scan after the last step
-        obs[T] = terminal_observation(obs[T - 1], truth[T], episode.topic("truth")[-1], goal)
-    if sorted(obs) != list(range(T + 1)):
-        raise ValueError(f"observations for steps {sorted(obs)[:3]}.. but T = {T}")
-    stacker = FrameStacker(FRAMES, OBS_DIM)
-    stacks = [stacker.push(obs[k]) for k in range(T + 1)]
-    dist = [float(np.linalg.norm(p - goal)) for p in truth]
-    outcome = episode.outcome
-    rewards = np.empty(T)
-    for k in range(T):
-        if k == T - 1 and outcome == "collision":
-            rewards[k] = collision_reward(config)[0]
-            continue
-        o = obs[k + 1]
-        h, g = float(o[33]) * 180.0, float(o[34]) * 180.0
-        rewards[k] = base_reward(dist[k], dist[k + 1], float(truth[k + 1][2]), h, g, config)[0]
-    return Transitions(np.stack(stacks[:-1]), np.asarray(actions, np.float32), rewards,
-                       np.stack(stacks[1:]), outcome in ("success", "collision"),
-                       outcome == "success")
+    return EpisodeSteps(goal, T, episode.outcome, obs,
+                        [odometry_values(t) for t in truth_msgs], actions)
+
+
+def rebuild_episode(episode, config: RewardConfig,
+                    commands: dict[int, tuple] | None = None) -> Transitions:
+    """Transitions of one complete logged episode; ``ValueError`` names what does not
+    fit (:func:`episode_steps`, then :func:`policy.transitions.transitions_from_steps`)."""
+    return transitions_from_steps(episode_steps(episode, commands), config)
 
 
 def body_commands(path: Path) -> dict[int, tuple]:
@@ -129,22 +105,6 @@ def body_commands(path: Path) -> dict[int, tuple]:
                 continue
             if cmd.header.frame_id == BODY_FRAME:
                 out[nanoseconds(cmd.header.stamp)] = twist_values(cmd)
-    return out
-
-
-def terminal_observation(previous: np.ndarray, position: np.ndarray, truth_msg,
-                         goal: np.ndarray) -> np.ndarray:
-    """The observation after the last step when the log has none (stack logs end the
-    episode without a last scan): the previous faces, altitude and h, g from the
-    terminal *true* pose (the env uses the estimate; they differ by centimetres and
-    fractions of a degree). Used for the last reward and next state only."""
-    from perception.observation import ObservationConfig, goal_angles
-
-    cfg = ObservationConfig()
-    _, velocity, q = odometry_values(truth_msg.decode())
-    h, g = goal_angles(position, yaw_of(q), velocity, goal)
-    out = np.array(previous, np.float32, copy=True)
-    out[32:35] = (position[2] / cfg.altitude_scale, h / cfg.angle_scale, g / cfg.angle_scale)
     return out
 
 
@@ -175,13 +135,9 @@ def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
             except (ValueError, AttributeError) as exc:
                 report.skip(f"inconsistent: {exc}")
                 continue
-            T = len(tr.actions)
-            for k in range(T):
-                buffer.add(tr.states[k], tr.actions[k], float(tr.rewards[k]),
-                           tr.next_states[k], tr.terminal and k == T - 1)
-            goal_reward.on_episode_end(buffer, buffer.end_episode(), tr.reached)
+            add_episode(tr, buffer, goal_reward)
             report.episodes_used += 1
-            report.transitions += T
+            report.transitions += len(tr.actions)
     return report
 
 

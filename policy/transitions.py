@@ -1,0 +1,107 @@
+"""Transitions of one episode from the *log contract*, shared by ``--from-logs`` and the
+live learner (``skyloop learner``): both decode their messages into
+:class:`EpisodeSteps` and call :func:`transitions_from_steps` and :func:`add_episode`.
+
+The contract (see :mod:`policy.offline` for the message side): an episode of ``T``
+steps has the goal (from START), the outcome and ``T`` (from END), one 35-attribute
+observation per step 0 .. T-1 (step T when the log has it), the true pose per step
+0 .. T, and the policy's body-frame action of each step 0 .. T-1.
+
+Rewards are recomputed, never read: eq. 3.5 from the truth distances and altitude and
+the observation's h, g (stored as h/180 and g/180 in float32, so recomputed rewards agree
+with the env's to about 1e-5), the collision reward on a collision end. States are the
+3-frame stacks, zero-padded at the start. numpy only (no torch, no bus session).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bus.messages import yaw_of
+from perception.observation import FrameStacker, ObservationConfig, goal_angles
+from policy.rewards import GoalReward, RewardConfig, base_reward, collision_reward
+
+OBS_DIM, FRAMES = 35, 3
+OUTCOMES = ("success", "collision", "timeout", "aborted")
+
+#: One true pose: position (3,), velocity (3,), quaternion (x, y, z, w) (4,).
+Pose = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclass
+class EpisodeSteps:
+    """One episode as the log contract has it, decoded (see the module docstring)."""
+
+    goal: np.ndarray  # (3,) world ENU
+    steps: int  # T
+    outcome: str  # success, collision, timeout, aborted
+    observations: dict[int, np.ndarray]  # step -> (35,) float32
+    truth: list[Pose]  # T + 1 poses
+    actions: list[tuple[float, float, float, float]]  # T body-frame actions
+
+
+@dataclass
+class Transitions:
+    """One episode rebuilt: T transitions."""
+
+    states: np.ndarray  # (T, 3, 35) float32
+    actions: np.ndarray  # (T, 4) float32
+    rewards: np.ndarray  # (T,) base rewards
+    next_states: np.ndarray  # (T, 3, 35)
+    terminal: bool  # last transition terminal (goal or collision)
+    reached: bool
+
+
+def terminal_observation(previous: np.ndarray, pose: Pose, goal: np.ndarray) -> np.ndarray:
+    """The observation after the last step when the log has none (stack logs end the
+    episode without a last scan): the previous faces, altitude and h, g from the
+    terminal *true* pose (the env uses the estimate; they differ by centimetres and
+    fractions of a degree). Used for the last reward and next state only."""
+    cfg = ObservationConfig()
+    position, velocity, q = pose
+    h, g = goal_angles(position, yaw_of(q), velocity, goal)
+    out = np.array(previous, np.float32, copy=True)
+    out[32:35] = (position[2] / cfg.altitude_scale, h / cfg.angle_scale, g / cfg.angle_scale)
+    return out
+
+
+def transitions_from_steps(ep: EpisodeSteps, config: RewardConfig) -> Transitions:
+    """Transitions of one complete episode; ``ValueError`` names what does not fit."""
+    T, obs, truth = ep.steps, dict(ep.observations), ep.truth
+    if T is None or T < 1:
+        raise ValueError("no steps")
+    if ep.outcome not in OUTCOMES:
+        raise ValueError(f"outcome {ep.outcome!r}")
+    if len(truth) != T + 1 or len(ep.actions) != T:
+        raise ValueError(f"{len(truth)} truth poses and {len(ep.actions)} actions for T = {T}")
+    if sorted(obs) == list(range(T)):  # a stack log: no scan after the last step
+        obs[T] = terminal_observation(obs[T - 1], truth[T], ep.goal)
+    if sorted(obs) != list(range(T + 1)):
+        raise ValueError(f"observations for steps {sorted(obs)[:3]}.. but T = {T}")
+    stacker = FrameStacker(FRAMES, OBS_DIM)
+    stacks = [stacker.push(obs[k]) for k in range(T + 1)]
+    dist = [float(np.linalg.norm(p[0] - ep.goal)) for p in truth]
+    rewards = np.empty(T)
+    for k in range(T):
+        if k == T - 1 and ep.outcome == "collision":
+            rewards[k] = collision_reward(config)[0]
+            continue
+        o = obs[k + 1]
+        h, g = float(o[33]) * 180.0, float(o[34]) * 180.0
+        rewards[k] = base_reward(dist[k], dist[k + 1], float(truth[k + 1][0][2]), h, g,
+                                 config)[0]
+    return Transitions(np.stack(stacks[:-1]), np.asarray(ep.actions, np.float32), rewards,
+                       np.stack(stacks[1:]), ep.outcome in ("success", "collision"),
+                       ep.outcome == "success")
+
+
+def add_episode(tr: Transitions, buffer, goal_reward: GoalReward) -> np.ndarray:
+    """Store one rebuilt episode in a :class:`~policy.replay.ReplayBuffer` and let the
+    goal-reward variant (TR/NGR/EGR/ABR) rewrite its rewards; returns the rewards."""
+    T = len(tr.actions)
+    for k in range(T):
+        buffer.add(tr.states[k], tr.actions[k], float(tr.rewards[k]), tr.next_states[k],
+                   tr.terminal and k == T - 1)
+    return goal_reward.on_episode_end(buffer, buffer.end_episode(), tr.reached)
