@@ -14,6 +14,11 @@ episode changes (never carried across episodes), the actor maps the stacked stat
 (the env does the same), sent as SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_NED with
 the velocity + yaw-rate type mask.
 
+**New weights** (``--weights-from-bus``): a :class:`~policy.weights.WeightsFollower`
+decodes actor weights a learner publishes between observations and swaps them in where
+the frame stacker resets (the episode boundary), never mid-episode; ``weights_version``
+is the version flying.
+
 **Step matching.** A setpoint sent for an observation carries, as ``time_boot_ms``, the
 stack time (ms) of that observation; the vehicle's bridge uses it to tell the simulator
 which step the command is for. Once in OFFBOARD the client's own timer re-sends stop:
@@ -28,6 +33,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -59,8 +65,9 @@ class PolicyNode:
 
     def __init__(self, bus: Bus, controller: Controller, vehicle: str = "uav1",
                  client_config: OffboardClientConfig | None = None, frames: int = 3,
-                 dim: int = 35, lockstep: bool = True) -> None:
+                 dim: int = 35, lockstep: bool = True, weights: Any = None) -> None:
         self.bus, self.controller, self.vehicle = bus, controller, vehicle
+        self.weights = weights  # a policy.weights.WeightsFollower, or None
         self.lockstep = lockstep
         self.stacker = FrameStacker(frames, dim)
         self.clock = _StampClock()
@@ -85,7 +92,13 @@ class PolicyNode:
         # From now on the node paces the stream itself (see the module docstring).
         c.config.setpoint_period = math.inf
         c._next_setpoint = math.inf  # noqa: SLF001 - stop the client's timer re-sends
-        log.info("offboard: flying %s", getattr(self.controller, "name", "controller"))
+        log.info("offboard: flying %s (weights version %d)",
+                 getattr(self.controller, "name", "controller"), self.weights_version)
+
+    @property
+    def weights_version(self) -> int:
+        """Version of the actor flying (0: the one the node started with)."""
+        return 0 if self.weights is None else self.weights.version
 
     def act(self, msg: object) -> np.ndarray | None:
         """One observation -> the float32 action sent (None if the actor gave NaN/inf)."""
@@ -94,6 +107,8 @@ class PolicyNode:
         if step == 0 or episode != self.episode:
             self.stacker.reset()
             self.episode = episode
+            if self.weights is not None:
+                self.weights.at_episode_boundary(episode)
         state = self.stacker.push(values)
         action = np.asarray(self.controller(state), dtype=np.float64).reshape(-1)
         if action.shape != (4,) or not np.all(np.isfinite(action)):
@@ -133,6 +148,8 @@ class PolicyNode:
             msg = None
         if msg is not None:
             self.act(msg)
+        if self.weights is not None:
+            self.weights.poll()
         self.client.poll()
         self._resend_due()
 

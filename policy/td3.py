@@ -34,7 +34,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import torch
@@ -204,8 +204,9 @@ class TD3:
 
     # ------------------------------------------------------------------ checkpoints
 
-    def save_actor(self, path: str | Path) -> None:
-        """Write the actor alone (what a deployed policy needs); read with ``load_actor``."""
+    def save_actor(self, path: str | Path | BinaryIO) -> None:
+        """Write the actor alone (what a deployed policy needs); read with ``load_actor``
+        (a path, or a binary file object such as ``io.BytesIO``)."""
         c = self.config
         torch.save(
             {
@@ -252,7 +253,7 @@ class TD3:
         self.rng.bit_generator.state = _rng_from(state["rng"])
 
 
-def load_actor(path: str | Path) -> Actor:
+def load_actor(path: str | Path | BinaryIO) -> Actor:
     """Read an actor written by ``TD3.save_actor`` (eval mode, no gradients)."""
     state = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(state, dict) or state.get("format") != ACTOR_FORMAT:

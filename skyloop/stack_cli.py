@@ -130,15 +130,27 @@ def cmd_policy(args: argparse.Namespace) -> int:
     controller = make_controller(None if args.policy == "shipped" else args.policy)
     stop = _stop_event()
     bus = _open_bus(args)
+    weights = None
+    if args.weights_from_bus:
+        from policy.weights import WeightsFollower
+
+        try:
+            weights = WeightsFollower(bus, args.vehicle, controller,
+                                      emit=lambda line: print(line, flush=True))
+        except ValueError:
+            bus.close()
+            raise
     node = PolicyNode(bus, controller, args.vehicle,
                       OffboardClientConfig(listen_host=args.api_host,
                                            listen_port=args.api_port),
-                      lockstep=not args.realtime)
+                      lockstep=not args.realtime, weights=weights)
     try:
         node.start(args.takeoff_altitude)
         print(READY_LINE, flush=True)
         node.run(stop.is_set)
     finally:
+        if weights is not None:
+            logging.getLogger("skyloop.policy").info("weights: %s", weights.counters())
         bus.close()
         node.close()
     return 0
@@ -229,6 +241,9 @@ def add_stack_commands(sub: Any) -> None:
     p.add_argument("--api-port", type=int, default=MAVLINK_DEFAULTS["api_port"],
                    help="UDP port to listen on (PX4 SITL API link: 14540)")
     p.add_argument("--takeoff-altitude", type=float, default=None)
+    p.add_argument("--weights-from-bus", action="store_true",
+                   help="load actor weights a learner publishes (topic 'actor'), swapped in "
+                        "between episodes")
     p.set_defaults(func=cmd_policy)
 
     p = sub.add_parser("bridge", help="the vehicle's MAVLink endpoint (commands go to "
