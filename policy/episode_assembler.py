@@ -5,12 +5,15 @@ Input: decoded messages of the log contract (:mod:`policy.transitions`) as they 
 episode that arrived whole, from :meth:`EpisodeAssembler.poll`. Nothing here blocks,
 raises on bad input or touches a session: the learner calls it from its main loop.
 
-Per vehicle: ``episode`` START opens an episode and END closes it; the ``truth`` poses
-in between are its steps 0 .. T (one publisher with the events, so in order).
-Observations are joined by their (episode, step) fields and body-frame ``cmd_vel`` by
-stamp (the stamp of step k's truth), because they come from other processes
-(perception, the bridge) and may arrive after the END event. A closed episode waits up
-to ``grace_s`` for those; then it is emitted if whole, else skipped with a reason.
+Per vehicle: ``episode`` START opens an episode and END closes it (one subscription,
+so they arrive in order). Everything else is joined by key, because Zenoh delivers each
+subscription on its own and other processes publish some of it (perception, the
+bridge): the ``truth`` poses by stamp (every message of a step carries the step's stack
+time; START carries step 0's and END step T's, so steps 0 .. T are the T + 1 truth
+stamps from START's to END's; an episode's last stamp is also the next one's first,
+so a stamp can hold two poses, in arrival order), body-frame ``cmd_vel`` by the stamp of
+its step, and observations by their (episode, step) fields. A closed episode waits up to ``grace_s``
+for messages still in flight; then it is emitted if whole, else skipped with a reason.
 
 Skipped (counted in ``skipped`` by reason, never raised): an END without its START (the
 learner joined mid-episode), a START without END (the next START came first), truth
@@ -21,7 +24,7 @@ not fit its type (``corrupt <topic>``; the step it carried is then missing too).
 from __future__ import annotations
 
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -46,8 +49,9 @@ class _Open:
     index: int
     seed: int
     goal: np.ndarray
-    stamps: list[int] = field(default_factory=list)
-    truth: list[Pose] = field(default_factory=list)
+    start_stamp: int
+    shared_start: bool  # the previous episode ended at start_stamp: its pose is first
+    end_stamp: int = 0
     steps: int = 0
     outcome: str = ""
     deadline: float = 0.0
@@ -61,6 +65,8 @@ class _Vehicle:
         self.closed: list[_Open] = []
         self.observations: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self.commands: OrderedDict[int, tuple] = OrderedDict()
+        self.truth: OrderedDict[int, list[Pose]] = OrderedDict()
+        self.last_end_stamp: int | None = None
 
 
 class EpisodeAssembler:
@@ -74,7 +80,7 @@ class EpisodeAssembler:
         self.complete = 0
         self.skipped: dict[str, int] = {}
         self.dropped = 0
-        self.ignored = 0  # truth outside episodes, world-frame commands
+        self.ignored = 0  # world-frame commands, unknown topics
 
     def skip(self, reason: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
@@ -90,11 +96,8 @@ class EpisodeAssembler:
                 pose = m.odometry_values(msg)
                 if not all(np.all(np.isfinite(a)) for a in pose):
                     raise ValueError("non-finite pose")
-                if v.open is None:
-                    self.ignored += 1
-                else:
-                    v.open.stamps.append(m.nanoseconds(msg.header.stamp))
-                    v.open.truth.append(pose)
+                stamp = m.nanoseconds(msg.header.stamp)
+                self._put(v.truth, stamp, v.truth.pop(stamp, []) + [pose])
             elif topic == keys.OBSERVATION:
                 values = m.observation_values(msg)[-1]
                 if values.shape != (self.config.obs_dim,) or not np.all(np.isfinite(values)):
@@ -116,6 +119,7 @@ class EpisodeAssembler:
 
     def _put(self, table: OrderedDict, key: Any, value: Any) -> None:
         table[key] = value
+        table.move_to_end(key)
         while len(table) > self.config.max_pending:
             table.popitem(last=False)
             self.dropped += 1
@@ -124,15 +128,19 @@ class EpisodeAssembler:
         if msg.event == m.START:
             if v.open is not None:
                 self.skip("START without END")
-                self._forget(v, v.open)
+                self._forget(v, v.open.index, v.open.start_stamp)
+            stamp = m.nanoseconds(msg.header.stamp)
             v.open = _Open(int(msg.episode), int(msg.seed),
-                           np.array([msg.goal.x, msg.goal.y, msg.goal.z], np.float64))
+                           np.array([msg.goal.x, msg.goal.y, msg.goal.z], np.float64),
+                           stamp, v.last_end_stamp == stamp)
         elif msg.event == m.END:
             ep, v.open = v.open, None
+            v.last_end_stamp = m.nanoseconds(msg.header.stamp)
             if ep is None or ep.index != int(msg.episode):
                 self.skip("END without START")
                 return
             ep.steps, ep.outcome = int(msg.steps), m.outcome_name(msg)
+            ep.end_stamp = m.nanoseconds(msg.header.stamp)
             ep.deadline = now + self.config.grace_s
             v.closed.append(ep)
         else:
@@ -150,20 +158,22 @@ class EpisodeAssembler:
                 if done is not None:
                     out.append((name, ep.index, done))
                     self.complete += 1
-                elif reason is not None and (now >= ep.deadline or reason == "truth"):
+                elif now >= ep.deadline:
                     self.skip(f"missing {reason}")
                 else:
                     keep.append(ep)
                     continue
-                self._forget(v, ep)
+                self._forget(v, ep.index, ep.end_stamp)
             v.closed = keep
         return out
 
     def _try(self, v: _Vehicle, ep: _Open) -> tuple[EpisodeSteps | None, str | None]:
         T = ep.steps
-        if T < 1 or len(ep.truth) != T + 1:
+        stamps = sorted(s for s in v.truth if ep.start_stamp <= s <= ep.end_stamp)
+        first = 1 if ep.shared_start else 0
+        if T < 1 or len(stamps) != T + 1 or len(v.truth[stamps[0]]) <= first:
             return None, "truth"
-        actions = [v.commands.get(s) for s in ep.stamps[:T]]
+        actions = [v.commands.get(s) for s in stamps[:T]]
         if any(a is None for a in actions):
             return None, "actions"
         obs = {k: v.observations.get((ep.index, k)) for k in range(T + 1)}
@@ -171,15 +181,17 @@ class EpisodeAssembler:
             return None, "observations"
         if obs[T] is None:
             del obs[T]
-        return EpisodeSteps(ep.goal, T, ep.outcome, obs, ep.truth, actions), None
+        truth = [v.truth[stamps[0]][first]] + [v.truth[s][0] for s in stamps[1:]]
+        return EpisodeSteps(ep.goal, T, ep.outcome, obs, truth, actions), None
 
-    def _forget(self, v: _Vehicle, ep: _Open) -> None:
-        for key in [k for k in v.observations if k[0] == ep.index]:
+    def _forget(self, v: _Vehicle, index: int, stamp: int) -> None:
+        """Drop the observations of episodes up to ``index`` and the poses and commands
+        stamped before ``stamp`` (an episode's last stamp is the next one's first)."""
+        for key in [k for k in v.observations if k[0] <= index]:
             del v.observations[key]
-        last = ep.stamps[-1] if ep.stamps else None
-        if last is not None:
-            for key in [k for k in v.commands if k <= last]:
-                del v.commands[key]
+        for table in (v.commands, v.truth):
+            for key in [k for k in table if k < stamp]:
+                del table[key]
 
     @property
     def waiting(self) -> int:

@@ -35,7 +35,12 @@ WEIGHTS_LINE = "SKYLOOP-POLICY-WEIGHTS "
 
 
 class WeightsRejected(ValueError):
-    """An ``ActorWeights`` message that cannot replace the actor in use (why: message)."""
+    """An ``ActorWeights`` message that cannot replace the actor in use: ``kind`` (format,
+    sha256, decode, shapes, non-finite) and the message say why."""
+
+    def __init__(self, kind: str, detail: str) -> None:
+        super().__init__(f"{kind}: {detail}")
+        self.kind = kind
 
 
 def encode_actor(agent: TD3) -> bytes:
@@ -56,23 +61,23 @@ def decode_actor(msg: Any, like: Actor) -> Actor:
     """The actor of an ``ActorWeights`` message, checked against ``like`` (the actor in
     use: same layer shapes and action bound); ``WeightsRejected`` says why not."""
     if msg.format != ACTOR_FORMAT:
-        raise WeightsRejected(f"format {msg.format!r}, expected {ACTOR_FORMAT!r}")
+        raise WeightsRejected("format", f"{msg.format!r}, expected {ACTOR_FORMAT!r}")
     blob = m.actor_blob(msg)
     if msg.sha256 and hashlib.sha256(blob).hexdigest() != msg.sha256:
-        raise WeightsRejected("sha256 does not match the blob")
+        raise WeightsRejected("sha256", "the digest does not match the blob")
     try:
         actor = load_actor(io.BytesIO(blob))
     except Exception as exc:  # noqa: BLE001 - torch raises many types for bad bytes
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-        raise WeightsRejected(f"blob does not decode ({first})") from None
+        raise WeightsRejected("decode", f"the blob does not decode ({first})") from None
     want = {k: tuple(v.shape) for k, v in like.state_dict().items()}
     got = {k: tuple(v.shape) for k, v in actor.state_dict().items()}
     if got != want or actor.max_action != like.max_action:
-        raise WeightsRejected(f"layer shapes {sorted(got.values())} (max_action "
+        raise WeightsRejected("shapes", f"layers {sorted(got.values())} (max_action "
                               f"{actor.max_action}) do not match the actor in use "
                               f"{sorted(want.values())} (max_action {like.max_action})")
     if not all(bool(torch.isfinite(p).all()) for p in actor.parameters()):
-        raise WeightsRejected("non-finite weights")
+        raise WeightsRejected("non-finite", "NaN or infinite weights")
     return actor
 
 
@@ -104,11 +109,10 @@ class WeightsFollower:
             self._newest = int(msg.version)
             self._incoming = msg
 
-    def reject(self, version: int, reason: str) -> None:
-        key = reason.split(" (")[0]
-        self.rejected[key] = self.rejected.get(key, 0) + 1
-        log.warning("actor version %d rejected: %s; version %d keeps flying", version,
-                    reason, self.version)
+    def reject(self, version: int, err: WeightsRejected) -> None:
+        self.rejected[err.kind] = self.rejected.get(err.kind, 0) + 1
+        log.warning("actor version %d rejected (%s); version %d keeps flying", version, err,
+                    self.version)
 
     def poll(self) -> None:
         """Decode and check the newest message, if any, and hold it for the next
@@ -120,7 +124,7 @@ class WeightsFollower:
         try:
             actor = decode_actor(msg, self.controller.actor)
         except WeightsRejected as exc:
-            self.reject(int(msg.version), str(exc))
+            self.reject(int(msg.version), exc)
             return
         self.held = (int(msg.version), actor)
         log.info("actor version %d received; flying it from the next episode", msg.version)
