@@ -46,6 +46,7 @@ CHECKPOINT, ACTOR, SUMMARY = "checkpoint.pt", "actor.pt", "summary.json"
 CHECKPOINT_FORMAT = "skyloop-learner-1"
 PUBLISH_LINE = "SKYLOOP-LEARNER-PUBLISHED "
 SUMMARY_LINE = "SKYLOOP-LEARNER-SUMMARY "
+READY_LINE = "SKYLOOP-LEARNER-READY"  # subscribed, learning
 UPDATE_CHUNK = 25  # updates between two drains of the queue
 
 
@@ -66,7 +67,7 @@ class Learner:
         self.episodes = self.transitions = self.version = 0
         self.by_vehicle: dict[str, int] = {}
         self.owed = 0.0  # updates owed by the steps consumed
-        self.publish_at: int | None = None  # agent.updates at which to publish
+        self.publish_at: list[int] = []  # agent.updates at which to publish, in order
         self.since_publish = 0  # episodes consumed since the last publish
         self.updates_at_publish = 0
         self.inconsistent = 0
@@ -151,10 +152,15 @@ class Learner:
             self.since_publish += 1
             if self.since_publish >= self.config.publish_every:
                 self.since_publish = 0
-                self.publish_at = self.agent.updates + int(self.owed)
+                self.publish_at.append(self.agent.updates + int(self.owed))
             log.debug("%s episode %d: %d steps, %s", vehicle, index, T, steps.outcome)
             n += 1
         return n
+
+    def consume_rest(self) -> int:
+        """On stop: take in what is queued and whole (no more updates); how many."""
+        self.drain(0.0)
+        return self.consume(time.monotonic())
 
     def update(self, limit: int = UPDATE_CHUNK) -> int:
         """Run up to ``limit`` owed updates; returns how many ran."""
@@ -166,9 +172,10 @@ class Learner:
         return n
 
     def maybe_publish(self) -> bool:
-        if self.publish_at is None or self.agent.updates < self.publish_at:
+        if not self.publish_at or self.agent.updates < self.publish_at[0]:
             return False
-        self.publish_at = None
+        while self.publish_at and self.publish_at[0] <= self.agent.updates:
+            self.publish_at.pop(0)  # a learner behind publishes once for every target met
         if self.agent.updates == self.updates_at_publish:  # nothing learned since
             return False
         self.version += 1
@@ -190,6 +197,7 @@ class Learner:
         self.out.mkdir(parents=True, exist_ok=True)
         (self.out / "config.json").write_text(json.dumps(asdict(c), indent=2))
         t0, steps0, saved_at = time.monotonic(), self.transitions, self.episodes
+        self.emit(READY_LINE)
         with tqdm(total=c.max_episodes or None, initial=self.episodes, unit="ep",
                   disable=not progress, desc=f"learner {c.algo}+{c.reward}",
                   file=sys.stderr) as bar:
@@ -209,6 +217,7 @@ class Learner:
                     saved_at = self.episodes
                 if c.max_episodes and self.episodes >= c.max_episodes and self.owed < 1:
                     break
+            bar.update(self.consume_rest())
         self.save()
         return self.summary(time.monotonic() - t0)
 
