@@ -36,6 +36,7 @@ class LearnerConfig:
     seed: int = 0
     updates_per_step: float = 1.0  # TD3 updates per new env step
     warmup: int = 1000  # transitions in the buffer before updates start [choice]
+    critic_warmup: int = 1000  # first updates train the critic only [choice]
     publish_every: int = 1  # consumed episodes between two publishes
     checkpoint_every: int = 50  # consumed episodes between two checkpoints
     init_actor: str | None = "shipped"  # "shipped", "scratch" or an actor file
@@ -61,10 +62,10 @@ class LearnerConfig:
                      "threads"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-        if self.updates_per_step < 0 or self.warmup < 0 or self.max_episodes < 0 \
-                or self.grace_s < 0:
-            raise ValueError("--updates-per-step, --warmup, --max-episodes and --grace "
-                             "must be >= 0")
+        if min(self.updates_per_step, self.warmup, self.critic_warmup, self.max_episodes,
+               self.grace_s) < 0:
+            raise ValueError("--updates-per-step, --warmup, --critic-warmup, --max-episodes "
+                             "and --grace must be >= 0")
 
 
 def cmd_learner(args: argparse.Namespace) -> int:
@@ -74,6 +75,7 @@ def cmd_learner(args: argparse.Namespace) -> int:
     config = LearnerConfig(
         vehicles=args.vehicles, algo=args.algo, reward=args.reward, seed=args.seed,
         updates_per_step=args.updates_per_step, warmup=args.warmup,
+        critic_warmup=args.critic_warmup,
         publish_every=args.publish_every, checkpoint_every=args.checkpoint_every,
         init_actor=args.init_actor, buffer_size=args.buffer_size,
         max_episodes=args.max_episodes, grace_s=args.grace, threads=args.threads,
@@ -112,6 +114,9 @@ def add_learner_parser(sub: Any) -> None:
                    help="updates per new env step (default: 1)")
     p.add_argument("--warmup", type=int, default=d.warmup, metavar="TRANSITIONS",
                    help="transitions in the buffer before updates start (default: 1000)")
+    p.add_argument("--critic-warmup", type=int, default=d.critic_warmup, metavar="UPDATES",
+                   help="the first updates train the critic only, so a fresh critic does not "
+                        "drag a trained --init-actor around (default: 1000)")
     p.add_argument("--publish-every", type=int, default=d.publish_every, metavar="EPISODES")
     p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
                    metavar="EPISODES")

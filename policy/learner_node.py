@@ -7,9 +7,11 @@ enqueue (a full queue is a counted drop); the main loop feeds the
 transitions with the code ``--from-logs`` uses (:mod:`policy.transitions`), lets the
 goal reward (TR/NGR/EGR/ABR) rewrite them in the replay buffer and runs TD3 (or DDPG)
 updates: ``updates_per_step`` per new step once ``warmup`` transitions are in, done in
-small chunks between queue drains. Every ``publish_every`` consumed episodes, once the
-updates those episodes owed are done, it publishes the actor on
-``skyloop/<vehicle>/actor`` for each vehicle served, with a version counting up from 1
+small chunks between queue drains; the first ``critic_warmup`` updates train the critic
+only (a fresh critic would otherwise drag a trained initial actor around). Every
+``publish_every`` consumed episodes, once the updates those episodes owed are done and
+the actor has moved, it publishes the actor on ``skyloop/<vehicle>/actor`` for each
+vehicle served, with a version counting up from 1
 (``policy.weights``). A checkpoint (agent, replay buffer, goal-reward state, counters,
 RNG states) is written atomically every ``checkpoint_every`` episodes and on exit;
 ``resume`` continues from it, versions included.
@@ -167,7 +169,8 @@ class Learner:
         n = min(int(self.owed), limit)
         batch = self.agent.config.batch_size
         for _ in range(n):
-            self.agent.update(self.buffer.sample(batch))
+            self.agent.update(self.buffer.sample(batch),
+                              train_actor=self.agent.updates >= self.config.critic_warmup)
         self.owed -= n
         return n
 
@@ -176,8 +179,8 @@ class Learner:
             return False
         while self.publish_at and self.publish_at[0] <= self.agent.updates:
             self.publish_at.pop(0)  # a learner behind publishes once for every target met
-        if self.agent.updates == self.updates_at_publish:  # nothing learned since
-            return False
+        if self.agent.updates <= max(self.updates_at_publish, self.config.critic_warmup):
+            return False  # the actor has not moved since the last publish
         self.version += 1
         self.updates_at_publish = self.agent.updates
         msg = actor_weights_message(self.agent, self.version, time.time())

@@ -177,10 +177,12 @@ class TD3:
         # deterministic policy gradient through Q_1 only; critic weights get no gradient
         return -self.critic.q1(state, self.actor(state), detach_params=True).mean()
 
-    def update(self, batch: Batch) -> dict[str, float]:
+    def update(self, batch: Batch, train_actor: bool = True) -> dict[str, float]:
         """One gradient step of Algorithm 3.1 on ``batch``; returns the losses.
 
-        ``actor_loss`` is reported only on delayed (actor) steps.
+        ``actor_loss`` is reported only on delayed (actor) steps. ``train_actor=False``
+        steps the critics (and the target updates) only: the actor stays as it is (a
+        learner warming a fresh critic up under a trained actor).
         """
         c = self.config
         self.updates += 1
@@ -193,13 +195,14 @@ class TD3:
         out = {"critic_loss": critic_loss.item(), "q1": q[0].mean().item()}
 
         if self.updates % c.policy_delay == 0:  # delayed policy and target updates
-            actor_loss = self._actor_loss(batch.state)
-            self.actor_opt.zero_grad(set_to_none=True)
-            actor_loss.backward()
-            self.actor_opt.step()
+            if train_actor:
+                actor_loss = self._actor_loss(batch.state)
+                self.actor_opt.zero_grad(set_to_none=True)
+                actor_loss.backward()
+                self.actor_opt.step()
+                out["actor_loss"] = actor_loss.item()
             for target, source in self._pairs:
                 soft_update(target, source, c.tau)
-            out["actor_loss"] = actor_loss.item()
         return out
 
     # ------------------------------------------------------------------ checkpoints

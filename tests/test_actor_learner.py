@@ -137,8 +137,9 @@ def test_two_workers_and_a_learner_on_loopback(tmp_path):
     for topic in (*TOPICS, keys.ACTOR):
         bus.subscribe(topic, "*", lambda v, msg, t=topic: on_msg(t, v, msg), with_vehicle=True)
     learner = Proc("learner", ["learner", "--vehicles", *VEHICLES, "--out", str(tmp_path / "l"),
-                               "--warmup", "0", "--publish-every", "1", "--updates-per-step",
-                               "1", "--buffer-size", "20000", "--no-progress"], env)
+                               "--warmup", "0", "--critic-warmup", "20", "--publish-every", "1",
+                               "--updates-per-step", "1", "--buffer-size", "20000",
+                               "--no-progress"], env)
     nodes = {v: vehicle_nodes(v, i, env) for i, v in enumerate(VEHICLES)}
     procs = [learner, *(p for n in nodes.values() for p in n.values())]
     try:

@@ -199,8 +199,8 @@ def test_weights_swap_only_at_the_episode_boundary_and_bad_blobs_are_rejected(bu
 
 # ----------------------------------------------------------------------------- learner
 def test_learner_consumes_bus_episodes_publishes_and_resumes(bus, tmp_path):
-    cfg = LearnerConfig(vehicles=["uavl"], warmup=0, publish_every=2, max_episodes=2,
-                        init_actor="scratch", buffer_size=10_000, grace_s=0.5)
+    cfg = LearnerConfig(vehicles=["uavl"], warmup=0, critic_warmup=0, publish_every=2,
+                        max_episodes=2, init_actor="scratch", buffer_size=10_000, grace_s=0.5)
     lines: list[str] = []
     learner = Learner(bus, cfg, tmp_path, emit=lines.append)
     controller = ActorController(SHIPPED_POLICY)
@@ -231,3 +231,26 @@ def test_learner_consumes_bus_episodes_publishes_and_resumes(bus, tmp_path):
                                            "vehicles": ["uavm"]}), tmp_path, emit=lines.append)
     assert (resumed.episodes, resumed.version, resumed.agent.updates) == (2, 1, 11)
     assert len(resumed.buffer) == 11
+
+
+def test_critic_warmup_leaves_the_actor_as_it_was():
+    from policy.replay import ReplayBuffer
+
+    agent = TD3(TD3Config(seed=5))
+    buf = ReplayBuffer(100, (3, 35), 4, seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        buf.add(rng.uniform(0, 1, (3, 35)), rng.uniform(-2, 2, 4), rng.normal(),
+                rng.uniform(0, 1, (3, 35)), False)
+    def same(before, module) -> bool:
+        return all(torch.equal(a, b) for a, b in zip(before, module.parameters(), strict=True))
+
+    actor0 = [p.clone() for p in agent.actor.parameters()]
+    critic0 = [p.clone() for p in agent.critic.parameters()]
+    for _ in range(4):
+        out = agent.update(buf.sample(10), train_actor=False)
+        assert "actor_loss" not in out
+    assert same(actor0, agent.actor) and not same(critic0, agent.critic)
+    agent.update(buf.sample(10))
+    assert "actor_loss" in agent.update(buf.sample(10))
+    assert not same(actor0, agent.actor)
