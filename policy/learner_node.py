@@ -205,9 +205,9 @@ class Learner:
                   disable=not progress, desc=f"learner {c.algo}+{c.reward}",
                   file=sys.stderr) as bar:
             while not stop():
-                busy = self.drain(0.0 if self.owed >= 1 else 0.05)
+                self.drain(0.0 if self.owed >= 1 else 0.05)
                 new = self.consume(time.monotonic())
-                busy += self.update()
+                self.update()
                 self.maybe_publish()
                 if new:
                     bar.update(new)

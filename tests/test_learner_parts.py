@@ -254,3 +254,23 @@ def test_critic_warmup_leaves_the_actor_as_it_was():
     agent.update(buf.sample(10))
     assert "actor_loss" in agent.update(buf.sample(10))
     assert not same(actor0, agent.actor)
+
+
+def test_learner_serves_every_vehicle_it_sees(bus, tmp_path):
+    """``--vehicles '*'``: episodes of any vehicle, weights to each vehicle seen."""
+    cfg = LearnerConfig(warmup=0, critic_warmup=0, max_episodes=2, init_actor="scratch",
+                        buffer_size=1000, grace_s=0.5)
+    learner = Learner(bus, cfg, tmp_path, emit=lambda line: None)
+    followers = {v: WeightsFollower(bus, v, ActorController(SHIPPED_POLICY))
+                 for v in ("uavx", "uavy")}
+    for i, v in enumerate(followers):
+        pubs = {t: bus.publisher(t, v) for t in (keys.EPISODE, keys.OBSERVATION, keys.TRUTH,
+                                                 keys.CMD_VEL)}
+        assert all(p.wait_matched(5.0) for p in pubs.values())
+        for topic, msg in episode_messages(i, 4, 10 * i):
+            pubs[topic].put(msg)
+    deadline = time.monotonic() + 60.0
+    summary = learner.run(lambda: time.monotonic() > deadline, progress=False)
+    assert summary["by_vehicle"] == {"uavx": 1, "uavy": 1} and summary["version"] >= 1
+    assert set(learner.publishers) == {"uavx", "uavy"}
+    wait_for(lambda: all(f.received for f in followers.values()), what="weights to both")
