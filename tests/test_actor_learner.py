@@ -108,11 +108,18 @@ def vehicle_nodes(vehicle: str, index: int, env: dict) -> dict[str, Proc]:
 
 
 def flown_actions(observations: dict[int, np.ndarray], T: int, actor) -> np.ndarray:
-    """What ``actor`` answers at each step of an episode (as the policy node computes)."""
+    """What ``actor`` answers at each step of an episode (as the policy node computes).
+
+    One state per call, shape (1, 105), as the node runs it: a batched matmul may take
+    another BLAS kernel and differ in the last float32 bits.
+    """
     stacker = FrameStacker(3, 35)
+    rows = []
     with torch.no_grad():
-        states = np.stack([stacker.push(observations[k]) for k in range(T)])
-        a = actor(torch.as_tensor(states.reshape(T, -1))).numpy()
+        for k in range(T):
+            x = np.asarray(stacker.push(observations[k]), np.float32).reshape(1, -1)
+            rows.append(actor(torch.as_tensor(x))[0].numpy())
+    a = np.stack(rows)
     return np.clip(a.astype(np.float64), -2.0, 2.0).astype(np.float32)
 
 
@@ -182,9 +189,10 @@ def test_two_workers_and_a_learner_on_loopback(tmp_path):
                           key=lambda x: x["episode"], default={"version": 0})["version"]
             flown[index] = version
             logged = np.array(steps.actions, np.float32)
-            # Every step of the episode is the declared version's answer ...
+            # Every step of the episode is the declared version's answer (to float32
+            # rounding: the node and this test may run different BLAS kernels) ...
             np.testing.assert_allclose(logged, flown_actions(steps.observations, steps.steps,
-                                                             actors[version]), atol=1e-5)
+                                                             actors[version]), atol=1e-4)
             # ... and not version 0's once a learner version flies (the swap took effect).
             if version:
                 other = flown_actions(steps.observations, steps.steps, actors[0])
