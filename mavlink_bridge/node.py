@@ -22,6 +22,13 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
   that heading). A setpoint identical to the previous one, ``time_boot_ms`` included
   (the policy's 20 Hz re-sends in real time), is not forwarded again (``resends``), so
   the log holds each step's action once.
+* **Parameters**: the link's parameter table (:mod:`mavlink_bridge.params`, persisted per
+  vehicle; ``param_overrides`` from ``--param`` win for this run, not persisted) is the
+  one ground stations read and set. Every accepted PARAM_SET goes out on the bus
+  (``skyloop/<vehicle>/params``, ``Parameter``), and the whole table does whenever the
+  sim appears (first status, or a status whose clock went back: a restarted sim), so
+  the sim (commander, autopilot) and perception (``SKY_ICO_RADIUS``) fly with the
+  values a ground station sees.
 * **Telemetry**: LOCAL_POSITION_NED and ATTITUDE from the sim's estimated ``odom``.
 * **Presence**: the endpoint is serviced (heartbeats sent, MAVLink read) only while the
   sim's status is fresh (one within ``vehicle_timeout_s``; the sim sends one a second):
@@ -142,12 +149,19 @@ class BridgeNode:
 
     def __init__(self, bus: Bus, vehicle: str = "uav1",
                  link_config: VehicleLinkConfig | None = None,
-                 command_timeout_s: float = 1.0, vehicle_timeout_s: float = 3.0) -> None:
+                 command_timeout_s: float = 1.0, vehicle_timeout_s: float = 3.0,
+                 param_overrides: dict[str, float] | None = None) -> None:
         self.bus = bus
         self.vehicle_timeout_s = vehicle_timeout_s
         self._status_wall = -math.inf  # monotonic time of the last status
+        self._status_time = math.inf  # the newest status's vehicle_time
         self.commander = CommanderProxy(bus, vehicle, command_timeout_s)
         self.link = VehicleLink(self.commander, link_config, on_setpoint=self._on_setpoint)
+        for name, value in (param_overrides or {}).items():
+            self.link.params.override(name, value)
+        self.param_pub = bus.publisher(keys.PARAMS, vehicle)
+        self.link.params.on_change = self._publish_param
+        self.params_published = 0
         original = self.link.handlers["SET_POSITION_TARGET_LOCAL_NED"]
 
         def on_setpoint_msg(ep: Any, msg: Any, addr: Any, now: float) -> None:
@@ -194,8 +208,18 @@ class BridgeNode:
                                      frame_id=frame))
         self.published += 1
 
+    def _publish_param(self, name: str, value: float) -> None:
+        self.param_pub.put(m.parameter(name, value))
+        self.params_published += 1
+
     # ------------------------------------------------------------------ bus side
     def _on_status(self, msg: Any) -> None:
+        vehicle_time = float(msg.vehicle_time)
+        if not self.vehicle_present or vehicle_time < self._status_time:
+            log.info("vehicle present: sending its %d parameters", len(self.link.params.values))
+            for name, value in self.link.params.values.items():
+                self._publish_param(name, value)
+        self._status_time = vehicle_time
         self._status_wall = time.monotonic()
         self.commander.update(msg)
         for text, severity in zip(msg.event_texts, msg.event_severities, strict=False):

@@ -95,6 +95,7 @@ class ParamServer:
         self.values: dict[str, float] = table.defaults()
         self._names = [p.name for p in table.PARAMS]
         self._load()
+        self._persistent = dict(self.values)  # what the file holds: no overrides
 
     # ------------------------------------------------------------------ store
     def _load(self) -> None:
@@ -121,7 +122,7 @@ class ParamServer:
         if self.path is None:
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        text = json.dumps({"format": FILE_FORMAT, "params": self.values}, indent=1,
+        text = json.dumps({"format": FILE_FORMAT, "params": self._persistent}, indent=1,
                           sort_keys=True)
         fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp",
                                    dir=self.path.parent)
@@ -140,6 +141,7 @@ class ParamServer:
         v = table.check(name, value)
         old = self.values[name]
         self.values[name] = v
+        self._persistent[name] = v
         if v != old:
             try:
                 self.save()
@@ -149,6 +151,14 @@ class ParamServer:
                 self.link.statustext(f"Param save failed: {exc}"[:50], "error")
             if self.on_change is not None:
                 self.on_change(name, v)
+        return v
+
+    def override(self, name: str, value: float) -> float:
+        """Set a value for this run only (command line): validated, never written to
+        the file (a later save keeps the file's value), no ``on_change``; ValueError if
+        refused."""
+        v = table.check(name, value)
+        self.values[name] = v
         return v
 
     # ------------------------------------------------------------------ protocol

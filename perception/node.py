@@ -7,6 +7,11 @@ arrival order does not matter, and publishes ``observation`` (35 values, one fra
 with the episode and step) through :func:`perception.observation.observation_from_scan`,
 the same function the in-process env calls. Zenoh callbacks only enqueue; one worker
 thread does the work.
+
+Parameters (``skyloop/<vehicle>/params``, set by a ground station through the bridge):
+``SKY_ICO_RADIUS`` replaces the icosahedron radius (eq. 3.1's p_radius) from the next
+observation on; an invalid value is logged and counted (``param_rejects``); the sim's
+parameters are not perception's and are ignored.
 """
 
 from __future__ import annotations
@@ -15,11 +20,12 @@ import logging
 import math
 import queue
 import threading
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from bus import keys
+from bus import keys, params
 from bus import messages as m
 from bus.node import Bus
 from perception.icosahedron import TruncatedIcosahedron
@@ -45,12 +51,13 @@ class PerceptionNode:
         self.goals: dict[int, np.ndarray] = {}
         self.pending: dict[int, dict[str, Any]] = {}
         self.published = 0
+        self.param_rejects = 0
         self._q: queue.Queue[tuple[str, Any] | None] = queue.Queue()
         # Warm up (numba compiles on the first call) before anyone can wait on us.
         observation_from_scan(np.ones((16, 3), np.float32), self.ico, np.zeros(3), 0.0,
                               np.zeros(3), np.ones(3), self.config)
         self.pub = bus.publisher(keys.OBSERVATION, vehicle)
-        for topic in (keys.EPISODE, keys.CLOCK, keys.ODOM, keys.LIDAR_POINTS):
+        for topic in (keys.EPISODE, keys.CLOCK, keys.ODOM, keys.LIDAR_POINTS, keys.PARAMS):
             bus.subscribe(topic, vehicle, lambda msg, t=topic: self._q.put((t, msg)))
         self._thread = threading.Thread(target=self._run, name="perception", daemon=True)
         self._thread.start()
@@ -64,6 +71,9 @@ class PerceptionNode:
 
     def handle(self, topic: str, msg: Any) -> None:
         """Take one message; publish an observation once a stamp is complete."""
+        if topic == keys.PARAMS:
+            self._set_param(str(msg.name), msg.value)
+            return
         if topic == keys.EPISODE:
             if msg.event == m.START:
                 self.goals[int(msg.episode)] = np.array([msg.goal.x, msg.goal.y, msg.goal.z])
@@ -77,6 +87,21 @@ class PerceptionNode:
         while len(self.pending) > _MAX_PENDING:
             del self.pending[min(self.pending)]
         self._flush()
+
+    def _set_param(self, name: str, value: float) -> None:
+        known = params.BY_NAME.get(name)
+        if known is not None and known.applies_to != "perception":
+            return  # the sim's
+        try:
+            radius = params.check(name, value)
+        except ValueError as err:
+            self.param_rejects += 1
+            log.warning("parameter rejected: %s", err)
+            return
+        if radius != self.config.radius:
+            self.config = replace(self.config, radius=radius)
+            self.ico = TruncatedIcosahedron(radius)
+            log.info("SKY_ICO_RADIUS = %g m", radius)
 
     def _flush(self) -> None:
         for stamp in sorted(self.pending):

@@ -45,10 +45,12 @@ def apply_param(name: str, value: float, commander: Commander, vehicle: Any) -> 
     elif name == "SKY_HOLD_LAND_T":
         c.hold_before_land = value
     elif name == "MPC_XY_VEL_MAX":
-        vehicle.autopilot.max_speed_xy = value
+        if vehicle is not None:  # None: a commander without a flight model (tests)
+            vehicle.autopilot.max_speed_xy = value
         c.rtl_speed = value
     elif name == "MPC_Z_VEL_MAX":
-        vehicle.autopilot.max_speed_z = value
+        if vehicle is not None:
+            vehicle.autopilot.max_speed_z = value
         c.rtl_climb_speed = value
     elif name == "GF_MAX_HOR_DIST":
         c.geofence = value

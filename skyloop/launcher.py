@@ -161,20 +161,30 @@ class Graph:
                 c.proc.wait(1.0)
 
 
+def _security_flags(args: argparse.Namespace) -> list[str]:
+    """The MAVLink security flags of ``up`` for the bridge and the policy (same key)."""
+    flags = [] if args.signing_key_file is None else ["--signing-key-file",
+                                                      str(args.signing_key_file)]
+    return flags + [a for n in (args.allow_sysid or []) for a in ("--allow-sysid", str(n))]
+
+
 def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, list[str]]:
     clock = ["--realtime"] if args.realtime else ["--lockstep"]
     v = ["--vehicle", args.vehicle]
+    params = [a for p in args.param for a in ("--param", p)]
+    security = _security_flags(args)
     return {
         "perception": ["perception", *v],
         "bridge": ["bridge", *v, "--api-port", str(ports["api"]),
                    "--api-local-port", str(ports["api_local"]),
-                   "--gcs-port", str(ports["gcs"]), "--gcs-local-port", str(ports["gcs_local"])],
-        "policy": ["policy", *v, *clock, "--api-port", str(ports["api"]),
+                   "--gcs-port", str(ports["gcs"]), "--gcs-local-port", str(ports["gcs_local"]),
+                   *params, *security,
+                   *(["--bind", "0.0.0.0", "--expose"] if args.expose else [])],
+        "policy": ["policy", *v, *clock, "--api-port", str(ports["api"]), *security,
                    *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
         "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
                 str(args.episodes), "--seed", str(args.seed), "--max-steps", str(args.max_steps),
-                *(["--free-flight"] if args.policy == "none" else []),
-                *(a for p in args.param for a in ("--param", p))],
+                *(["--free-flight"] if args.policy == "none" else []), *params],
     }
 
 
@@ -285,6 +295,8 @@ def _summary(graph: Graph, args: argparse.Namespace, wall_s: float) -> dict[str,
 
 
 def add_up_parser(sub: Any, func: Any) -> None:
+    from mavlink_bridge.security import add_security_args
+
     p = sub.add_parser("up", help="run the whole stack (sim, perception, policy, bridge, "
                                   "[record], [router]) for N episodes")
     p.add_argument("--scenario", default="valley")
@@ -312,4 +324,5 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p.add_argument("--gcs-port", type=int, default=14550)
     p.add_argument("--gcs-local-port", type=int, default=18570)
     p.add_argument("-v", "--verbose", action="store_true", help="echo every node's output")
+    add_security_args(p)  # --expose: the bridge binds 0.0.0.0 (ground stations elsewhere)
     p.set_defaults(func=func)

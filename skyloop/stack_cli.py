@@ -115,13 +115,49 @@ def cmd_perception(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_policy(args: argparse.Namespace) -> int:
+def policy_client_config(args: argparse.Namespace) -> Any:
+    """The policy's MAVLink endpoint from its flags; ValueError (naming the flag) if
+    they ask for something unsafe, e.g. a non-loopback ``--api-host`` without
+    ``--expose``."""
     from mavlink_bridge.offboard_client import OffboardClientConfig
+    from mavlink_bridge.security import check_bind, security_from_args
+
+    security = security_from_args(args)
+    check_bind(args.api_host, security.expose, "the policy's MAVLink port (--api-host)")
+    return OffboardClientConfig(listen_host=args.api_host, listen_port=args.api_port,
+                                security=security)
+
+
+def bridge_link_config(args: argparse.Namespace) -> Any:
+    """The vehicle's MAVLink links from the bridge's flags; ValueError (naming the flag)
+    for a non-loopback ``--bind`` without ``--expose`` or an unreadable signing key."""
+    from mavlink_bridge.security import check_bind, security_from_args
+    from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
+
+    security = security_from_args(args)
+    check_bind(args.bind, security.expose, "the vehicle's MAVLink links (--bind)")
+    params_file = None if args.params_file == "none" else args.params_file
+    return VehicleLinkConfig(
+        api=LinkConfig(args.api_local_port, args.api_port, args.bind, args.api_host),
+        gcs=None if args.no_gcs else LinkConfig(args.gcs_local_port, args.gcs_port,
+                                                args.bind, args.gcs_host),
+        params_file=params_file, security=security)
+
+
+def _config_or_exit(build: Any, args: argparse.Namespace, name: str) -> Any:
+    try:
+        return build(args)
+    except (ValueError, OSError) as err:
+        raise SystemExit(f"skyloop {name}: {err}") from None
+
+
+def cmd_policy(args: argparse.Namespace) -> int:
     from policy.node import READY_LINE, PolicyNode
 
     if args.policy == "none":
         print("skyloop policy: --policy none: nothing to fly", file=sys.stderr)
         return 0
+    client_config = _config_or_exit(policy_client_config, args, "policy")
     import torch
 
     from policy.evaluate import make_controller
@@ -140,9 +176,7 @@ def cmd_policy(args: argparse.Namespace) -> int:
         except ValueError:
             bus.close()
             raise
-    node = PolicyNode(bus, controller, args.vehicle,
-                      OffboardClientConfig(listen_host=args.api_host,
-                                           listen_port=args.api_port),
+    node = PolicyNode(bus, controller, args.vehicle, client_config,
                       lockstep=not args.realtime, weights=weights)
     try:
         node.start(args.takeoff_altitude)
@@ -158,15 +192,13 @@ def cmd_policy(args: argparse.Namespace) -> int:
 
 def cmd_bridge(args: argparse.Namespace) -> int:
     from mavlink_bridge.node import BridgeNode
-    from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
 
-    link = VehicleLinkConfig(
-        api=LinkConfig(args.api_local_port, args.api_port, args.bind, args.api_host),
-        gcs=None if args.no_gcs else LinkConfig(args.gcs_local_port, args.gcs_port,
-                                                args.bind, args.gcs_host))
+    link = _config_or_exit(bridge_link_config, args, "bridge")
+    overrides = parse_params(args.param)
     stop = _stop_event()
     bus = _open_bus(args)
-    node = BridgeNode(bus, args.vehicle, link, command_timeout_s=args.command_timeout)
+    node = BridgeNode(bus, args.vehicle, link, command_timeout_s=args.command_timeout,
+                      param_overrides=overrides)
     logging.getLogger("skyloop.bridge").info(
         "bridge up: api %s -> %s:%d, gcs %s", node.link.address("api"), args.api_host,
         args.api_port, "off" if args.no_gcs else f"-> {args.gcs_host}:{args.gcs_port}")
@@ -206,6 +238,8 @@ def cmd_up(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------- parsers
 def add_stack_commands(sub: Any) -> None:
     """Register the stack's subcommands on ``sub`` (argparse subparsers)."""
+    from mavlink_bridge.security import add_security_args
+
     p = sub.add_parser("sim", help="simulator node: the vehicle, its commander and "
                                    "failsafes, seeded episodes on the bus")
     _zenoh_args(p)
@@ -218,7 +252,8 @@ def add_stack_commands(sub: Any) -> None:
                         "an episode is one goal, no timeout")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="vehicle parameter (bus/params.py: COM_OF_LOSS_T, SKY_HOLD_LAND_T, "
-                        "MPC_XY_VEL_MAX, MPC_Z_VEL_MAX, GF_MAX_HOR_DIST, SKY_FLIGHT_LVL)")
+                        "MPC_XY_VEL_MAX, MPC_Z_VEL_MAX, GF_MAX_HOR_DIST, SKY_FLIGHT_LVL, "
+                        "SKY_ICO_RADIUS)")
     p.add_argument("--lockstep-timeout", type=float, default=2.0,
                    help="lockstep: wall seconds to wait for a step's command in OFFBOARD "
                         "before flying without it (default 2)")
@@ -244,6 +279,7 @@ def add_stack_commands(sub: Any) -> None:
     p.add_argument("--weights-from-bus", action="store_true",
                    help="load actor weights a learner publishes (topic 'actor'), swapped in "
                         "between episodes")
+    add_security_args(p)
     p.set_defaults(func=cmd_policy)
 
     p = sub.add_parser("bridge", help="the vehicle's MAVLink endpoint (commands go to "
@@ -263,6 +299,13 @@ def add_stack_commands(sub: Any) -> None:
                         "TEMPORARILY_REJECTED)")
     p.add_argument("--scenario", default=None,
                    help="unused (the land detector moved into the sim); kept for old scripts")
+    p.add_argument("--params-file", default="auto", metavar="PATH|auto|none",
+                   help="where ground-station parameter changes persist (auto: "
+                        "$XDG_STATE_HOME/skyloop/params-sys<id>.json; none: memory only)")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="parameter value for this run (not persisted; wins over the file); "
+                        "`skyloop up` passes the sim's --param here too")
+    add_security_args(p)
     p.set_defaults(func=cmd_bridge)
 
     p = sub.add_parser("record", help="record skyloop/** into MCAP (see 'record --help')",

@@ -11,9 +11,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from skyloop.cli import build_parser
+from skyloop.stack_cli import bridge_link_config, policy_client_config
 
 DOCKER = Path(__file__).resolve().parent.parent / "docker"
 NODES = {"sim", "perception", "policy", "bridge", "record"}
@@ -56,6 +58,27 @@ def test_commands_parse():
             args = parser.parse_args([a.replace("${SKYLOOP_GCS_HOST:-host.docker.internal}",
                                                 "host.docker.internal") for a in cmd])
             assert args.command == name
+
+
+def _parsed(name: str, drop: str | None = None):
+    cmd = [a.replace("${SKYLOOP_GCS_HOST:-host.docker.internal}", "host.docker.internal")
+           for a in node_commands()[name] if a != drop]
+    return build_parser().parse_args(cmd)
+
+
+def test_mavlink_services_start_with_their_flags(tmp_path):
+    """The bridge and the policy build their MAVLink config from the compose flags as
+    they do at start-up: bound to 0.0.0.0 with --expose (without it: refused)."""
+    bridge = bridge_link_config(_parsed("bridge"))
+    assert bridge.gcs.local_host == "0.0.0.0" and bridge.security.expose
+    assert bridge.params_file == "/data/state/params-sys1.json"
+    services = compose()["services"]
+    assert any(v.startswith("state:/data/state") for v in services["bridge"]["volumes"])
+    policy = policy_client_config(_parsed("policy"))
+    assert policy.listen_host == "0.0.0.0" and policy.security.expose
+    for name, build in (("bridge", bridge_link_config), ("policy", policy_client_config)):
+        with pytest.raises(ValueError, match="--expose"):
+            build(_parsed(name, drop="--expose"))
 
 
 def test_commands_have_help():
