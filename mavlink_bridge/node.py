@@ -30,6 +30,9 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
   the sim (commander, autopilot) and perception (``SKY_ICO_RADIUS``) fly with the
   values a ground station sees.
 * **Telemetry**: LOCAL_POSITION_NED and ATTITUDE from the sim's estimated ``odom``.
+* **Goals** (:mod:`mavlink_bridge.goals`): missions, DO_REPOSITION and
+  SET_POSITION_TARGET_GLOBAL_INT become PoseStamped goals on ``goal``; progress
+  (MISSION_CURRENT, MISSION_ITEM_REACHED) follows the sim's ``episode`` events.
 * **Presence**: the endpoint is serviced (heartbeats sent, MAVLink read) only while the
   sim's status is fresh (one within ``vehicle_timeout_s``; the sim sends one a second):
   like a PX4 that is not running, a vehicle whose sim has not started or has died sends
@@ -53,6 +56,7 @@ from typing import Any
 from bus import keys
 from bus import messages as m
 from bus.node import Bus
+from mavlink_bridge.goals import GoalService
 from mavlink_bridge.interfaces import VehicleTelemetry, VelocityCommand
 from mavlink_bridge.vehicle_link import VehicleLink, VehicleLinkConfig
 
@@ -173,8 +177,12 @@ class BridgeNode:
         self._q: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._wake_r, self._wake_w = os.pipe()  # bus callbacks wake the select loop
         os.set_blocking(self._wake_r, False)
-        for topic in (keys.STATUS, keys.ODOM):
+        for topic in (keys.STATUS, keys.ODOM, keys.EPISODE):
             bus.subscribe(topic, vehicle, lambda msg, t=topic: self._push(t, msg))
+        # Goals from the ground station (mavlink_bridge.goals) -> the goal topic.
+        goal_pub = bus.publisher(keys.GOAL, vehicle)
+        self.goals = GoalService(self.link, lambda p: goal_pub.put(m.pose_stamped(p, 0.0)))
+        self.goals.install()
         self._t0 = time.monotonic()
         self._ms = -1
         self._last: tuple | None = None  # the last forwarded setpoint (re-send filter)
@@ -249,6 +257,8 @@ class BridgeNode:
                 break
             if topic == keys.STATUS:
                 self._on_status(msg)
+            elif topic == keys.EPISODE:
+                self.goals.on_episode(msg, self.clock())
             else:
                 self._on_odom(msg)
         if self.vehicle_present:

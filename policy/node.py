@@ -19,6 +19,17 @@ decodes actor weights a learner publishes between observations and swaps them in
 the frame stacker resets (the episode boundary), never mid-episode; ``weights_version``
 is the version flying.
 
+**Holding between goals** (``hold``, ``skyloop up --goals gcs``): the sim flies
+episodes only toward goals from a ground station, and nothing is observed between them.
+At startup the node waits for the takeoff to complete (Hold) before OFFBOARD (no episode
+will place the vehicle airborne). As a MAVSDK companion would, it then streams a zero
+velocity setpoint at 20 Hz (the vehicle hovers in OFFBOARD, no setpoint-loss
+failsafe): from OFFBOARD until the first observation, and from each episode's END
+(``episode`` topic) until the next episode's first observation; observations of an
+ended episode are dropped. At the first observation of a new episode, if the vehicle is
+armed in HOLD (a ground station paused it, or a failsafe held it) the node asks for
+OFFBOARD again: a new goal is the ground station's word to fly.
+
 **Step matching.** A setpoint sent for an observation carries, as ``time_boot_ms``, the
 stack time (ms) of that observation; the vehicle's bridge uses it to tell the simulator
 which step the command is for. Once in OFFBOARD the client's own timer re-sends stop:
@@ -40,7 +51,8 @@ import numpy as np
 from bus import keys
 from bus import messages as m
 from bus.node import Bus
-from mavlink_bridge.offboard_client import OffboardClient, OffboardClientConfig
+from mavlink_bridge.modes import AUTO_LOITER, AUTO_TAKEOFF, OFFBOARD
+from mavlink_bridge.offboard_client import OffboardClient, OffboardClientConfig, OffboardError
 from perception.observation import FrameStacker
 
 log = logging.getLogger("skyloop.policy")
@@ -65,7 +77,8 @@ class PolicyNode:
 
     def __init__(self, bus: Bus, controller: Controller, vehicle: str = "uav1",
                  client_config: OffboardClientConfig | None = None, frames: int = 3,
-                 dim: int = 35, lockstep: bool = True, weights: Any = None) -> None:
+                 dim: int = 35, lockstep: bool = True, weights: Any = None,
+                 hold: bool = False) -> None:
         self.bus, self.controller, self.vehicle = bus, controller, vehicle
         self.weights = weights  # a policy.weights.WeightsFollower, or None
         self.lockstep = lockstep
@@ -79,6 +92,10 @@ class PolicyNode:
         self.resend_period = 0.05  # real time, as MAVSDK's 20 Hz
         self._stamp_s: float | None = None
         self._next_resend = math.inf
+        self.hold = hold
+        self.ended = -1  # hold: the newest episode whose END was seen
+        self.events = bus.inbox(keys.EPISODE, vehicle, maxsize=64) if hold else None
+        self.reentries = 0  # hold: OFFBOARD asked for again at a new episode
 
     def start(self, takeoff_altitude: float | None = None, timeout: float = 30.0) -> None:
         """Connect, stream a zero setpoint, arm, take off, start offboard."""
@@ -88,12 +105,50 @@ class PolicyNode:
         c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
         c.arm()
         c.takeoff(takeoff_altitude)
+        if self.hold:  # no episode will place it airborne: climb first (then Hold)
+            c.wait(lambda: c.mode == AUTO_TAKEOFF, 5.0)
+            if not c.wait(lambda: c.mode == AUTO_LOITER, timeout):
+                raise OffboardError(f"takeoff did not complete within {timeout} s")
         c.start_offboard()
-        # From now on the node paces the stream itself (see the module docstring).
-        c.config.setpoint_period = math.inf
-        c._next_setpoint = math.inf  # noqa: SLF001 - stop the client's timer re-sends
+        # From now on the node paces the stream itself (see the module docstring);
+        # holding, the client's timer streams the zero setpoint until an observation.
+        if not self.hold:
+            self._stream_zero(False)
         log.info("offboard: flying %s (weights version %d)",
                  getattr(self.controller, "name", "controller"), self.weights_version)
+
+    def _stream_zero(self, on: bool) -> None:
+        """Start (``on``: a zero setpoint, re-sent at 20 Hz by the client) or stop the
+        client's own setpoint timer."""
+        c = self.client
+        if on:
+            self._stamp_s = None  # no re-sends of a step's setpoint while holding
+            c.config.setpoint_period = self.resend_period
+            c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
+        else:
+            c.config.setpoint_period = math.inf
+            c._next_setpoint = math.inf  # noqa: SLF001 - stop the client's timer re-sends
+
+    def _take_events(self) -> None:
+        """Hold: an END of the episode flying starts the zero stream."""
+        assert self.events is not None
+        while (ev := self.events.get_nowait()) is not None:
+            if int(ev.event) == m.END and int(ev.episode) > self.ended:
+                self.ended = int(ev.episode)
+                if self.episode is not None and self.episode <= self.ended:
+                    self._stream_zero(True)
+
+    def _resume_offboard(self) -> None:
+        """Hold: a new episode while the vehicle is armed in HOLD -> OFFBOARD again."""
+        c = self.client
+        if not (c.armed and c.mode == AUTO_LOITER):
+            return
+        self.reentries += 1
+        try:
+            c.set_mode(OFFBOARD)
+            log.info("new goal while holding: OFFBOARD again")
+        except OffboardError as err:
+            log.warning("new goal: OFFBOARD refused (%s)", err)
 
     @property
     def weights_version(self) -> int:
@@ -104,7 +159,10 @@ class PolicyNode:
         """One observation -> the float32 action sent (None if the actor gave NaN/inf)."""
         values = m.observation_values(msg)[-1]
         episode, step = int(msg.episode), int(msg.step)
-        if step == 0 or episode != self.episode:
+        if self.hold and episode <= self.ended:
+            return None  # an ended episode's late observation: keep holding
+        new = episode != self.episode
+        if step == 0 or new:
             self.stacker.reset()
             self.episode = episode
             if self.weights is not None:
@@ -121,6 +179,9 @@ class PolicyNode:
         self._stamped(lambda: self.client.set_velocity_body(*(float(a) for a in action)))
         self._next_resend = time.monotonic() + self.resend_period
         self.sent += 1
+        if self.hold and new:
+            self._stream_zero(False)
+            self._resume_offboard()
         return action
 
     def _stamped(self, send: Callable[[], None]) -> None:
@@ -146,6 +207,8 @@ class PolicyNode:
             msg = self.inbox.get(timeout=wait)
         except TimeoutError:
             msg = None
+        if self.events is not None:
+            self._take_events()
         if msg is not None:
             self.act(msg)
         if self.weights is not None:

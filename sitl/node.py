@@ -26,9 +26,18 @@ the commander is in OFFBOARD before go, the node waits (nothing answers steps ye
   starts where the vehicle is, toward episode ``i``'s seeded goal, has no timeout, and
   ends at the goal (same rule) or at a collision (the vehicle is then put back on the
   ground at the next episode's start, disarmed). ``episodes`` 0: until stopped.
+* Goals from the bus only (``goals_from_bus``, ``skyloop up --goals gcs``): free flight
+  without seeded goals. Outside an episode (before the first goal, after each one) the
+  node flies control steps as in the ground phase (publishing only the status and the
+  estimated odometry, stamped with the standing stack time; the policy streams a hold
+  in OFFBOARD, see ``policy/node.py``) until a goal comes;
+  after a collision the vehicle is put on the ground where it fell, disarmed.
 * A goal on ``skyloop/<vehicle>/goal`` (PoseStamped, world ENU) replaces the current
   one: the running episode ends as ``aborted`` and the next starts where the vehicle is,
   toward that goal (its START event carries it, which is how perception gets goals).
+  A goal no episode could reach (not finite, inside terrain or an obstacle, above
+  ``goal_max_altitude + goal_radius``) is refused: counted in ``goal_rejects``, a status
+  event (STATUSTEXT at the bridge), nothing changes.
 
 Per control step of an episode it publishes, in this order (one session, express off):
 the step clock, the estimated odometry, the ground truth and the VLP-16 scan. Episode
@@ -133,10 +142,15 @@ class SimNode(StepLoop):
                 "path_length": length}
 
     def _next_goal(self, i: int, outcome: str) -> np.ndarray | None:
-        """The goal of episode ``i`` (None: a seeded, placed episode)."""
+        """The goal of episode ``i`` (None: a seeded, placed episode; with
+        ``goals_from_bus``: stopping)."""
         if self._pending_goal is not None:
             goal, self._pending_goal = self._pending_goal, None
             return goal
+        if self.config.goals_from_bus:
+            if outcome == "collision":  # back on the ground where it fell
+                self._place_on_ground(self.sim.vehicle.truth.position)
+            return self.wait_goal()
         if not self.config.free_flight:
             return None
         start, goal = self.sim.world.sample_start_goal(
@@ -144,6 +158,20 @@ class SimNode(StepLoop):
         if outcome == "collision":  # back on the ground at this episode's start
             self._place_on_ground(start)
         return goal
+
+    def wait_goal(self) -> np.ndarray | None:
+        """``goals_from_bus``: fly control steps outside any episode (the commander's
+        output, or a hold the policy streams) until a goal comes; None if stopping."""
+        while not self.stopping.is_set():
+            if self._pending_goal is not None:
+                goal, self._pending_goal = self._pending_goal, None
+                return goal
+            if self.tick(None):
+                self._place_on_ground(self.sim.vehicle.truth.position)
+            est = self.sim.vehicle.estimate  # telemetry for the bridge (stack time stands)
+            self.pub[keys.ODOM].put(m.odometry(est.position, est.velocity,
+                                               quat_from_yaw(est.yaw), self._stamp()))
+        return None
 
     def _place_on_ground(self, start: np.ndarray) -> None:
         self.sim.place_on_ground(float(start[0]), float(start[1]), self.sim.vehicle.estimate.yaw)
@@ -185,8 +213,10 @@ class SimNode(StepLoop):
         goal = s.goal.copy() if c.free_flight else None
         i = 0
         try:
+            if c.goals_from_bus:
+                goal = self.wait_goal()
             while (i < c.episodes or (c.free_flight and c.episodes <= 0)) \
-                    and not self.stopping.is_set():
+                    and not self.stopping.is_set() and (goal is not None or not c.free_flight):
                 r = self.run_episode(i, goal)
                 self.results.append(r)
                 emit(EPISODE_LINE + json.dumps(r))
@@ -209,7 +239,7 @@ class SimNode(StepLoop):
         out.update(steps=steps, mean_steps=steps / n if n else 0.0, wall_s=wall_s,
                    steps_per_s=steps / wall_s if wall_s > 0 else 0.0,
                    stale_commands=self.stale, late_steps=self.late, missed_steps=self.missed,
-                   param_rejects=self.service.param_rejects,
+                   param_rejects=self.service.param_rejects, goal_rejects=self.goal_rejects,
                    **{k: round(v, 3) for k, v in self.timing.items()})
         if self.latencies_ms:
             lat = np.array(self.latencies_ms)

@@ -41,6 +41,7 @@ class SimNodeConfig:
     goal_max_altitude: float = 6.0
     match_timeout_s: float = 10.0  # wait for subscribers before the first episode
     free_flight: bool = False
+    goals_from_bus: bool = False  # free flight toward bus goals only, holding between
     lockstep_timeout_s: float = 2.0
     params: dict[str, float] = field(default_factory=dict)  # bus.params names
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)
@@ -53,6 +54,7 @@ class StepLoop:
         self.bus = bus
         self.config = c = config
         c.episode.scenario = c.scenario
+        c.free_flight = c.free_flight or c.goals_from_bus
         if c.free_flight and not c.realtime:  # nothing answers steps for a ground station
             log.info("free flight runs in real time")
             c.realtime = True
@@ -80,6 +82,7 @@ class StepLoop:
         self.stale = 0  # commands whose stamp was not the current step's
         self.late = 0  # real time: steps flown on an older command
         self.missed = 0  # lockstep: OFFBOARD steps flown without their command
+        self.goal_rejects = 0  # goals from the bus no episode could reach
         self.latencies_ms: list[float] = []
         self._missing = False
         self._last_cmd: Any = None
@@ -187,6 +190,26 @@ class StepLoop:
             if deadline is not None and stamp < want:
                 self._last_cmd = msg
 
+    def _take_goal(self, goal: np.ndarray) -> bool:
+        """A goal from the bus becomes the pending one unless no episode could reach it
+        (not finite, inside terrain or an obstacle, higher than ``goal_max_altitude`` +
+        ``goal_radius``): then it is refused, counted and reported (a status event)."""
+        c, s = self.config, self.sim
+        why = None
+        if not np.all(np.isfinite(goal)):
+            why = "not finite"
+        elif goal[2] > c.goal_max_altitude + c.goal_radius:
+            why = f"above {c.goal_max_altitude + c.goal_radius:g} m"
+        elif s.world.collides(goal, s.config.body_radius, s.time):
+            why = "inside terrain or an obstacle"
+        if why is not None:
+            self.goal_rejects += 1
+            log.warning("goal %s refused: %s", goal, why)
+            self.service.notify(f"Goal refused: {why}")
+            return False
+        self._pending_goal = np.asarray(goal, dtype=np.float64)
+        return True
+
     # ------------------------------------------------------------------ one step
     def _sample(self) -> VehicleSample:
         s = self.sim
@@ -231,7 +254,7 @@ class StepLoop:
         if (goal := self.goals.get_nowait()) is not None:
             while (newer := self.goals.get_nowait()) is not None:
                 goal = newer
-            self._pending_goal = m.pose_values(goal)[0]
+            self._take_goal(m.pose_values(goal)[0])
         out = cmdr.step(now, self._sample())
         env_rules = episode is not None and not c.free_flight and cmdr.state == State.OFFBOARD
         if not env_rules:

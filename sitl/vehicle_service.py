@@ -126,6 +126,11 @@ class VehicleService:
                                     c.landed, c.failsafe, self.revision))
         return len(requests)
 
+    def notify(self, text: str, severity: str = "warning") -> None:
+        """An event of the vehicle's own (not the commander's), sent with the next
+        status (a STATUSTEXT at the bridge)."""
+        self._events.append((text, "vehicle", severity))
+
     # ------------------------------------------------------------------ status
     def _collect(self) -> bool:
         """Take the commander's events and note a change; True if anything changed."""

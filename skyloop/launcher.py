@@ -14,7 +14,11 @@ OFFBOARD (arm, takeoff and offboard done the MAVSDK way, through the bridge to t
 commander); then it runs the episodes. In lockstep every episode is the same as in the
 in-process env. ``--policy none``: no policy process; the sim runs free flight in real
 time (the vehicle waits on the ground, disarmed, for a ground station; an episode is one
-goal), until stopped or ``--episodes`` goals (default: until stopped). ``--param
+goal), until stopped or ``--episodes`` goals (default: until stopped). ``--goals gcs``:
+the policy takes off and flies OFFBOARD as usual, but the sim runs free flight in real
+time with goals from the bus only (``sim --goals-from-bus``): a ground station's mission
+or reposition gives them (``mavlink_bridge.goals``), and between goals the policy hovers
+(``policy --hold``); until stopped by default. ``--param
 NAME=VALUE`` goes to the sim (``bus/params.py``). When the sim finishes, the others get
 SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period. If any
 child dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits
@@ -181,20 +185,24 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
                    *params, *security,
                    *(["--bind", "0.0.0.0", "--expose"] if args.expose else [])],
         "policy": ["policy", *v, *clock, "--api-port", str(ports["api"]), *security,
+                   *(["--hold"] if args.goals == "gcs" else []),
                    *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
         "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
                 str(args.episodes), "--seed", str(args.seed), "--max-steps", str(args.max_steps),
-                *(["--free-flight"] if args.policy == "none" else []), *params],
+                *(["--free-flight"] if args.policy == "none" else []),
+                *(["--goals-from-bus"] if args.goals == "gcs" else []), *params],
     }
 
 
 def run_up(args: argparse.Namespace) -> int:
     """Run the graph (see the module docstring); returns the exit code."""
-    if args.policy == "none" and not args.realtime:
-        print("--policy none: free flight for a ground station, running --realtime")
+    gcs = args.policy == "none" or args.goals == "gcs"
+    if gcs and not args.realtime:
+        print("--policy none / --goals gcs: free flight for a ground station, running "
+              "--realtime")
         args.realtime = True
     if args.episodes is None:
-        args.episodes = 0 if args.policy == "none" else 5
+        args.episodes = 0 if gcs else 5
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     env.setdefault("MAVLINK20", "1")
@@ -301,9 +309,14 @@ def add_up_parser(sub: Any, func: Any) -> None:
                                   "[record], [router]) for N episodes")
     p.add_argument("--scenario", default="valley")
     p.add_argument("--episodes", type=int, default=None,
-                   help="episodes (default 5; --policy none: goals, default until stopped)")
+                   help="episodes (default 5; --policy none / --goals gcs: goals, default "
+                        "until stopped)")
     p.add_argument("--seed", type=int, default=1000, help="episode i uses seed + i")
     p.add_argument("--max-steps", type=int, default=300, help="episode timeout (env: 300)")
+    p.add_argument("--goals", choices=("seeded", "gcs"), default="seeded",
+                   help="seeded: episodes from --seed (default); gcs: the policy flies "
+                        "toward goals from a ground station (missions, reposition) and "
+                        "hovers in between, until stopped")
     p.add_argument("--policy", default="shipped",
                    help="actor file, 'scripted', 'none' (no policy: the vehicle waits on "
                         "the ground for a ground station) or 'shipped' (default)")

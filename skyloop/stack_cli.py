@@ -91,6 +91,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
                                           seed=args.seed, vehicle=args.vehicle,
                                           realtime=args.realtime, max_steps=args.max_steps,
                                           free_flight=args.free_flight, params=values,
+                                          goals_from_bus=args.goals_from_bus,
                                           lockstep_timeout_s=args.lockstep_timeout))
         go = (lambda: sys.stdin.readline()) if args.wait_go else None
         node.run(lambda line: print(line, flush=True), go)
@@ -177,7 +178,7 @@ def cmd_policy(args: argparse.Namespace) -> int:
             bus.close()
             raise
     node = PolicyNode(bus, controller, args.vehicle, client_config,
-                      lockstep=not args.realtime, weights=weights)
+                      lockstep=not args.realtime, weights=weights, hold=args.hold)
     try:
         node.start(args.takeoff_altitude)
         print(READY_LINE, flush=True)
@@ -250,6 +251,9 @@ def add_stack_commands(sub: Any) -> None:
     p.add_argument("--free-flight", action="store_true",
                    help="no seeded placements: wait on the ground for a ground station; "
                         "an episode is one goal, no timeout")
+    p.add_argument("--goals-from-bus", action="store_true",
+                   help="free flight toward goals on the goal topic only (a ground station's "
+                        "missions and clicks); between goals the vehicle holds")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="vehicle parameter (bus/params.py: COM_OF_LOSS_T, SKY_HOLD_LAND_T, "
                         "MPC_XY_VEL_MAX, MPC_Z_VEL_MAX, GF_MAX_HOR_DIST, SKY_FLIGHT_LVL, "
@@ -280,6 +284,9 @@ def add_stack_commands(sub: Any) -> None:
                    help="load actor weights a learner publishes (topic 'actor'), swapped in "
                         "between episodes")
     add_security_args(p)
+    p.add_argument("--hold", action="store_true",
+                   help="between episodes stream a zero setpoint (hover in OFFBOARD) and take "
+                        "OFFBOARD again at a new episode (goals from a ground station)")
     p.set_defaults(func=cmd_policy)
 
     p = sub.add_parser("bridge", help="the vehicle's MAVLink endpoint (commands go to "
