@@ -21,7 +21,8 @@ mission" here means: send the mission's goals to the policy one after another.
   (AUTO.MISSION resumes); a new upload or a single goal replaces it; MISSION_SET_CURRENT
   while it runs jumps there.
 * **Single goal**: MAV_CMD_DO_REPOSITION (192; COMMAND_LONG: param5/6 lat/lon degrees,
-  param7 altitude AMSL; COMMAND_INT: x/y degE7, z in the command's global frame) and
+  float32, so ~0.5 m; param7 altitude AMSL; COMMAND_INT, what QGroundControl sends:
+  x/y degE7, z in the command's global frame) and
   SET_POSITION_TARGET_GLOBAL_INT (a type mask that uses x and y; z ignored = keep the
   altitude) send one goal and end a running mission. The same target again while the
   vehicle is in OFFBOARD is not sent again (a ground station re-sending, or streaming
