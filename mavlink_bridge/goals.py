@@ -20,13 +20,10 @@ mission" here means: send the mission's goals to the policy one after another.
   stops the mission (STATUSTEXT). DO_SET_MODE to HOLD, LAND, RTL or TAKEOFF pauses it
   (AUTO.MISSION resumes); a new upload or a single goal replaces it; MISSION_SET_CURRENT
   while it runs jumps there.
-* **Single goal**: MAV_CMD_DO_REPOSITION (192; COMMAND_LONG: param5/6 lat/lon degrees,
-  float32, so ~0.5 m; param7 altitude AMSL; COMMAND_INT, what QGroundControl sends:
-  x/y degE7, z in the command's global frame) and
-  SET_POSITION_TARGET_GLOBAL_INT (a type mask that uses x and y; z ignored = keep the
-  altitude) send one goal and end a running mission. The same target again while the
-  vehicle is in OFFBOARD is not sent again (a ground station re-sending, or streaming
-  a target): counted ``goal.repeat``.
+* **Single goal**: MAV_CMD_DO_REPOSITION (192; COMMAND_LONG: param5/6 lat/lon degrees as
+  float32, ~0.5 m, param7 AMSL; COMMAND_INT, as QGroundControl: degE7, z in its frame)
+  and SET_POSITION_TARGET_GLOBAL_INT (a mask using x and y) send one goal and end a
+  running mission. The same target again in OFFBOARD is not re-sent (``goal.repeat``).
 
 **Accepted only** while the vehicle is armed, in the air and in HOLD or OFFBOARD
 (otherwise DENIED, STATUSTEXT). **Refused** (DENIED and counted ``goal.rejected.<why>``,
@@ -44,8 +41,8 @@ NaN (DO_REPOSITION) or ignored by the type mask = the vehicle's current altitude
 relative or local frame (the ground under home: no place to fly to) = the flight level,
 SKY_FLIGHT_LVL metres above the terrain datum (local z = 0, the scenario's datum, where
 the policy was trained to fly: its observation holds the goal's direction, not its
-height). The bridge does not know the terrain; the sim refuses a goal inside terrain or
-obstacles or higher than its episodes can reach (STATUSTEXT from the sim).
+height). The bridge does not know the terrain; the sim refuses a goal below the terrain,
+inside an obstacle or higher than its episodes can reach (STATUSTEXT from the sim).
 
 Progress comes from the sim's episode events (:meth:`GoalService.on_episode`): the START
 whose goal is the one sent names the episode; that episode's END decides.

@@ -35,8 +35,8 @@ the commander is in OFFBOARD before go, the node waits (nothing answers steps ye
 * A goal on ``skyloop/<vehicle>/goal`` (PoseStamped, world ENU) replaces the current
   one: the running episode ends as ``aborted`` and the next starts where the vehicle is,
   toward that goal (its START event carries it, which is how perception gets goals).
-  A goal no episode could reach (not finite, inside terrain or an obstacle, above
-  ``goal_max_altitude + goal_radius``) is refused: counted in ``goal_rejects``, a status
+  A goal no episode could reach (not finite, below the terrain, inside an obstacle,
+  above ``goal_max_altitude + goal_radius``) is refused: counted in ``goal_rejects``, a status
   event (STATUSTEXT at the bridge), nothing changes.
 
 Per control step of an episode it publishes, in this order (one session, express off):

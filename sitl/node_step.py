@@ -192,16 +192,19 @@ class StepLoop:
 
     def _take_goal(self, goal: np.ndarray) -> bool:
         """A goal from the bus becomes the pending one unless no episode could reach it
-        (not finite, inside terrain or an obstacle, higher than ``goal_max_altitude`` +
-        ``goal_radius``): then it is refused, counted and reported (a status event)."""
+        (not finite, below the terrain, inside an obstacle, higher than
+        ``goal_max_altitude + goal_radius``): then it is refused, counted and reported
+        (a status event)."""
         c, s = self.config, self.sim
         why = None
         if not np.all(np.isfinite(goal)):
             why = "not finite"
         elif goal[2] > c.goal_max_altitude + c.goal_radius:
             why = f"above {c.goal_max_altitude + c.goal_radius:g} m"
-        elif s.world.collides(goal, s.config.body_radius, s.time):
-            why = "inside terrain or an obstacle"
+        elif goal[2] < float(s.world.terrain_height(goal[0], goal[1])):
+            why = "below the terrain"
+        elif s.world.collides_off_terrain(goal, s.config.body_radius, s.time):
+            why = "inside an obstacle"
         if why is not None:
             self.goal_rejects += 1
             log.warning("goal %s refused: %s", goal, why)
@@ -251,9 +254,7 @@ class StepLoop:
         t2 = time.perf_counter()
         now = self.now()
         self.service.serve(now)
-        if (goal := self.goals.get_nowait()) is not None:
-            while (newer := self.goals.get_nowait()) is not None:
-                goal = newer
+        while (goal := self.goals.get_nowait()) is not None:  # the newest valid one wins
             self._take_goal(m.pose_values(goal)[0])
         out = cmdr.step(now, self._sample())
         env_rules = episode is not None and not c.free_flight and cmdr.state == State.OFFBOARD

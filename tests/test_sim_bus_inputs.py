@@ -1,6 +1,7 @@
 """The simulator node's bus inputs, in process over real loopback Zenoh with JSBSim:
 parameters on ``params`` (applied, or counted as rejected), goals on ``goal`` (the
-running episode ends ``aborted``, the next starts where the vehicle is, toward it), and
+running episode ends ``aborted``, the next starts where the vehicle is, toward it;
+unreachable ones refused and counted), and
 commander requests on ``command`` flying a geofence breach into RTL."""
 
 from __future__ import annotations
@@ -62,6 +63,11 @@ def test_goal_from_the_bus_starts_a_new_episode(free_sim) -> None:
     pub = bus.publisher(keys.GOAL, "uav1")
     assert pub.wait_matched()
     here = node.sim.vehicle.truth.position.copy()
+    # Goals no episode could reach are refused, counted, and change nothing.
+    for bad in ((np.nan, 0.0, 3.5), (here[0], here[1], 20.0), (here[0], here[1], -5.0)):
+        pub.put(m.pose_stamped(np.array(bad), 0.0))
+    wait_for(lambda: node.goal_rejects == 3, what="three goals refused")
+    assert sum(e.event == m.START for e in events) == 1
     goal = here + np.array([10.0, -5.0, 3.5])
     pub.put(m.pose_stamped(goal, 0.0))
     wait_for(lambda: sum(e.event == m.START for e in events) == 2, what="a second START")
