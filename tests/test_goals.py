@@ -6,6 +6,7 @@ Commander on a point vehicle), progress driven by real episode event messages.""
 from __future__ import annotations
 
 import math
+import random
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -227,3 +228,24 @@ def test_mission_started_by_auto_mission_advances_on_success(flying) -> None:
     assert "Mission complete" in [t.text for t in of_type(got, "STATUSTEXT")]
     assert svc.link.missions.state == M.MISSION_STATE_COMPLETE
     assert len(published) == 2 and svc.counters["mission.started"] == 1
+
+
+def test_odd_values_are_answered_never_raise(flying) -> None:
+    """NaN, inf and huge values in every parameter of the goal commands: each gets a
+    COMMAND_ACK, no handler error, and only well-formed goals are published."""
+    rig, svc, published = flying
+    take_off(rig)
+    odd = [math.nan, math.inf, -math.inf, 1e30, -1e30, 0.0, 47.4, 8.5, 4.0, 300.0, -1.0]
+    rng = random.Random(5)
+    for n in range(300):
+        cmd = (M.MAV_CMD_DO_REPOSITION, M.MAV_CMD_MISSION_START, M.MAV_CMD_DO_SET_MODE)[n % 3]
+        params = [rng.choice(odd) for _ in range(7)]
+        got = rig.exchange(M.MAVLink_command_long_message(1, 1, cmd, 0, *params))
+        assert [a.command for a in of_type(got, "COMMAND_ACK")] == [cmd], params
+    for _ in range(100):
+        x, y = rng.choice([0, 2**31 - 1, -(2**31), 473_977_420]), rng.choice([0, 85_455_940])
+        rig.exchange(M.MAVLink_set_position_target_global_int_message(
+            0, 1, 1, rng.choice([0, 3, 5, 6, 1, 11]), rng.randrange(0, 2**16), x, y,
+            rng.choice(odd), 0, 0, 0, 0, 0, 0, 0, 0))
+    assert rig.link.counters["handler_error"] == 0
+    assert all(len(p) == 3 and all(math.isfinite(v) for v in p) for p in published)
