@@ -25,10 +25,12 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
 * **Parameters**: the link's parameter table (:mod:`mavlink_bridge.params`, persisted per
   vehicle; ``param_overrides`` from ``--param`` win for this run, not persisted) is the
   one ground stations read and set. Every accepted PARAM_SET goes out on the bus
-  (``skyloop/<vehicle>/params``, ``Parameter``), and the whole table does whenever the
-  sim appears (first status, or a status whose clock went back: a restarted sim), so
-  the sim (commander, autopilot) and perception (``SKY_ICO_RADIUS``) fly with the
-  values a ground station sees.
+  (``skyloop/<vehicle>/params``, ``Parameter``), and every value somebody chose (the
+  file's, the overrides: :meth:`~mavlink_bridge.params.ParamServer.explicit`) does
+  whenever the sim appears (first status, or a status whose clock went back: a
+  restarted sim), so the sim (commander, autopilot) and perception (``SKY_ICO_RADIUS``)
+  fly with the values a ground station set; defaults nobody touched are not sent, so a
+  node's own ``--param`` stands (``skyloop up`` gives the bridge the same ones).
 * **Telemetry**: LOCAL_POSITION_NED and ATTITUDE from the sim's estimated ``odom``.
 * **Goals** (:mod:`mavlink_bridge.goals`): missions, DO_REPOSITION and
   SET_POSITION_TARGET_GLOBAL_INT become PoseStamped goals on ``goal``; progress
@@ -224,8 +226,9 @@ class BridgeNode:
     def _on_status(self, msg: Any) -> None:
         vehicle_time = float(msg.vehicle_time)
         if not self.vehicle_present or vehicle_time < self._status_time:
-            log.info("vehicle present: sending its %d parameters", len(self.link.params.values))
-            for name, value in self.link.params.values.items():
+            chosen = self.link.params.explicit()
+            log.info("vehicle present: sending %d chosen parameters", len(chosen))
+            for name, value in chosen.items():
                 self._publish_param(name, value)
         self._status_time = vehicle_time
         self._status_wall = time.monotonic()

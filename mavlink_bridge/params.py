@@ -94,8 +94,9 @@ class ParamServer:
         self.counters: Counter[str] = Counter()
         self.values: dict[str, float] = table.defaults()
         self._names = [p.name for p in table.PARAMS]
+        self._persistent: dict[str, float] = {}  # what the file holds: set by a GCS
         self._load()
-        self._persistent = dict(self.values)  # what the file holds: no overrides
+        self._overridden: set[str] = set()
 
     # ------------------------------------------------------------------ store
     def _load(self) -> None:
@@ -112,13 +113,14 @@ class ParamServer:
             return
         for name, value in data["params"].items():
             try:
-                self.values[name] = table.check(name, value)
+                self.values[name] = self._persistent[name] = table.check(name, value)
             except ValueError as exc:
                 self.counters["load_skipped"] += 1
                 log.error("parameter file %s: skipped: %s", self.path, exc)
 
     def save(self) -> None:
-        """Write every value to :attr:`path` atomically (no-op when None)."""
+        """Write the values a ground station set (this run's and the file's earlier
+        ones; not defaults, not overrides) to :attr:`path` atomically (no-op when None)."""
         if self.path is None:
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -159,7 +161,15 @@ class ParamServer:
         refused."""
         v = table.check(name, value)
         self.values[name] = v
+        self._overridden.add(name)
         return v
+
+    def explicit(self) -> dict[str, float]:
+        """The values somebody chose -- in the file, set by a ground station, or
+        overridden for this run -- as opposed to defaults nobody touched. These are
+        what the nodes must be told (a node's own ``--param`` stands for the rest)."""
+        names = set(self._persistent) | self._overridden
+        return {n: self.values[n] for n in self._names if n in names}
 
     # ------------------------------------------------------------------ protocol
     def value_message(self, name: str) -> Any:
