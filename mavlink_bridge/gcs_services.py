@@ -15,6 +15,8 @@
   addressed to another system are counted (``<message>.other_target``) and ignored;
 * TIMESYNC: a request (tc1 == 0) is answered with tc1 = the vehicle's ``now`` in ns
   and ts1 echoed;
+* FILE_TRANSFER_PROTOCOL: refused at once (:mod:`mavlink_bridge.ftp`), so a ground
+  station that tries MAVLink FTP first falls back to the parameter protocol;
 * :meth:`GroundStationServices.send_due` -- the heartbeat at once on a
   mode/arming/status change, HOME_POSITION at once when home moves, every stream when due.
 """
@@ -27,6 +29,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from mavlink_bridge.autopilot_version import autopilot_version
+from mavlink_bridge.ftp import FtpRefuser
 from mavlink_bridge.missions import MissionServer
 from mavlink_bridge.params import ParamServer, default_params_file
 from mavlink_bridge.rates import MessageRates, default_intervals
@@ -50,6 +53,7 @@ class GroundStationServices:
             else c.params_file
         self.params = ParamServer(link, params_file)
         self.missions = MissionServer(link)
+        self.ftp = FtpRefuser(c.system_id, c.component_id)
         self.reporter = TelemetryReporter(link.commander, c.origin)
         self.messages: dict[int, Callable[[float], Any | None]] = {
             M.MAVLINK_MSG_ID_AUTOPILOT_VERSION: lambda now: autopilot_version(c.system_id),
@@ -74,6 +78,7 @@ class GroundStationServices:
                          ("MISSION_SET_CURRENT", mi.on_set_current_msg)):
             link.handlers[kind] = self._targeted(kind, fn)
         link.handlers["TIMESYNC"] = self._on_timesync
+        link.handlers["FILE_TRANSFER_PROTOCOL"] = self._on_ftp
         sysid = link.config.system_id
         link.commands.update({
             M.MAV_CMD_REQUEST_MESSAGE: self._cmd_request_message,
@@ -137,6 +142,11 @@ class GroundStationServices:
             return
         ep.send(M.MAVLink_timesync_message(int(round(now * 1e9)), msg.ts1), addr)
 
+    def _on_ftp(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
+        reply = self.ftp.reply(msg)
+        if reply is not None:
+            ep.send(reply, addr)
+
     def _message_id(self, value: float, what: str) -> int | None:
         if math.isfinite(value) and value == int(value) and int(value) in self.messages:
             return int(value)
@@ -182,4 +192,5 @@ class GroundStationServices:
         out: Counter[str] = Counter(self.counters)
         out.update({f"params.{k}": v for k, v in self.params.counters.items()})
         out.update({f"mission.{k}": v for k, v in self.missions.counters.items()})
+        out.update({f"ftp.{k}": v for k, v in self.ftp.counters.items()})
         return out

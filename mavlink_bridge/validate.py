@@ -1,11 +1,15 @@
 """Validation of SET_POSITION_TARGET_LOCAL_NED velocity setpoints.
 
 Supported type masks (a set bit means "ignore this field"); anything else is refused as
-``UNSUPPORTED_TYPE_MASK``, including masks that differ only in the FORCE_SET bit::
+``UNSUPPORTED_TYPE_MASK``::
 
     0x05C7 (1479)  velocity + yaw rate   (MAVSDK's body velocity; what our policy sends)
     0x09C7 (2503)  velocity + yaw        (MAVSDK's NED velocity; yaw is an absolute heading)
     0x0DC7 (3527)  velocity only         (ArduPilot's "use velocity"; yaw rate 0)
+
+each also with the FORCE_SET bit (0x200, "acceleration fields are a force"): all three
+ignore the acceleration fields, so the bit changes nothing, and PX4 ignores it too.
+MAVProxy's ``velocity x y z`` sends 0x0FC7 (4039) = velocity only + FORCE_SET.
 
 Frames: ``MAV_FRAME_LOCAL_NED`` (1) -> world ENU; ``MAV_FRAME_BODY_NED`` (8) ->
 body-horizontal FLU (forward, left, up), ``frame_is_body=True``: the consumer rotates it
@@ -42,6 +46,13 @@ MASK_VELOCITY_YAW_RATE = 0x05C7
 MASK_VELOCITY_YAW = 0x09C7
 MASK_VELOCITY = 0x0DC7
 SUPPORTED_MASKS = frozenset({MASK_VELOCITY_YAW_RATE, MASK_VELOCITY_YAW, MASK_VELOCITY})
+FORCE_SET = 0x200  # POSITION_TARGET_TYPEMASK_FORCE_SET: moot when accelerations are ignored
+
+
+def supported_mask(type_mask: int) -> int | None:
+    """The supported mask ``type_mask`` means (FORCE_SET cleared), or None."""
+    base = type_mask & ~FORCE_SET
+    return base if base in SUPPORTED_MASKS else None
 
 
 class Reject(StrEnum):
@@ -75,8 +86,10 @@ def validate_velocity_setpoint(
         return Reject.WRONG_TARGET
     if coordinate_frame not in (MAV_FRAME_LOCAL_NED, MAV_FRAME_BODY_NED):
         return Reject.UNKNOWN_FRAME
-    if type_mask not in SUPPORTED_MASKS:
+    mask = supported_mask(type_mask)
+    if mask is None:
         return Reject.UNSUPPORTED_TYPE_MASK
+    type_mask = mask
     used = [vx, vy, vz]
     if type_mask == MASK_VELOCITY_YAW_RATE:
         used.append(yaw_rate)

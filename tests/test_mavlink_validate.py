@@ -59,6 +59,17 @@ def test_velocity_yaw_and_velocity_only_masks() -> None:
     assert isinstance(cmd, VelocityCommand) and cmd.yaw is None and cmd.yaw_rate == 0.0
 
 
+@pytest.mark.parametrize("mask", [MASK_VELOCITY_YAW_RATE, MASK_VELOCITY_YAW, MASK_VELOCITY])
+def test_force_set_bit_changes_nothing(mask: int) -> None:
+    """FORCE_SET (0x200) only reinterprets the acceleration fields, which every supported
+    mask ignores (PX4 ignores the bit too); MAVProxy's ``velocity`` sends 0x0FC7."""
+    v = SetpointValidator()
+    plain = v.validate(msg(frame=MAV_FRAME_BODY_NED, mask=mask, yaw=0.5))
+    forced = v.validate(msg(frame=MAV_FRAME_BODY_NED, mask=mask | 0x200, yaw=0.5))
+    assert isinstance(plain, VelocityCommand) and forced == plain
+    assert v.accepted == 2 and v.total_rejected == 0
+
+
 @pytest.mark.parametrize(("kwargs", "reason"), [
     ({"target": (2, 1)}, Reject.WRONG_TARGET),
     ({"target": (1, 5)}, Reject.WRONG_TARGET),
@@ -68,7 +79,8 @@ def test_velocity_yaw_and_velocity_only_masks() -> None:
     ({"frame": 200}, Reject.UNKNOWN_FRAME),
     ({"mask": 0x0FF8}, Reject.UNSUPPORTED_TYPE_MASK),  # position only
     ({"mask": 0}, Reject.UNSUPPORTED_TYPE_MASK),
-    ({"mask": MASK_VELOCITY_YAW_RATE | 0x200}, Reject.UNSUPPORTED_TYPE_MASK),  # FORCE_SET
+    ({"mask": MASK_VELOCITY_YAW_RATE & ~0x40}, Reject.UNSUPPORTED_TYPE_MASK),  # uses ax
+    ({"mask": 0x0FF8 | 0x200}, Reject.UNSUPPORTED_TYPE_MASK),  # position + FORCE_SET
     ({"v": (math.nan, 0.0, 0.0)}, Reject.NAN),
     ({"yaw_rate": math.nan}, Reject.NAN),
     ({"v": (0.0, 0.0, math.inf)}, Reject.INF),
