@@ -21,7 +21,9 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
   with a ``|yaw`` suffix when the sender gave an absolute heading (then ``angular.z`` is
   that heading). A setpoint identical to the previous one, ``time_boot_ms`` included
   (the policy's 20 Hz re-sends in real time), is not forwarded again (``resends``), so
-  the log holds each step's action once.
+  the log holds each step's action once. ``time_boot_ms`` 0 means "not stamped"
+  (MAVProxy's ``velocity``): each such setpoint is forwarded, as PX4 takes every
+  setpoint as a fresh one, so an unstamped stream keeps OFFBOARD alive.
 * **Parameters**: the link's parameter table (:mod:`mavlink_bridge.params`, persisted per
   vehicle; ``param_overrides`` from ``--param`` win for this run, not persisted) is the
   one ground stations read and set. Every accepted PARAM_SET goes out on the bus
@@ -206,7 +208,7 @@ class BridgeNode:
     # ------------------------------------------------------------------ MAVLink side
     def _on_setpoint(self, cmd: VelocityCommand, now: float) -> None:
         key = (self._ms, cmd.vx, cmd.vy, cmd.vz, cmd.yaw_rate, cmd.frame_is_body, cmd.yaw)
-        if key == self._last:
+        if key == self._last and self._ms != 0:
             self.resends += 1
             return
         self._last = key

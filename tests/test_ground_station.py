@@ -1,7 +1,9 @@
 """A pymavlink ground station flies ``skyloop up --policy none`` (real processes, loopback).
 
 The vehicle waits on the ground, disarmed (HEARTBEAT: STANDBY, not armed); the ground
-station arms (ACK accepted), takes off (LOCAL_POSITION_NED: altitude rises under
+station reads the parameter list (PARAM_REQUEST_LIST: the table of ``bus/params.py``,
+``--param`` values in it), reads one by name, sets one (echoed, persisted under
+``$XDG_STATE_HOME``), arms (ACK accepted), takes off (LOCAL_POSITION_NED: altitude rises under
 JSBSim), streams velocity setpoints and switches to OFFBOARD, then stops streaming: the
 sim's commander holds, lands and disarms, each step announced by STATUSTEXT.
 COM_OF_LOSS_T and SKY_HOLD_LAND_T are shortened with ``--param``.
@@ -9,6 +11,7 @@ COM_OF_LOSS_T and SKY_HOLD_LAND_T are shortened with ``--param``.
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -24,6 +27,7 @@ os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
+from bus import params as table  # noqa: E402
 from mavlink_bridge.modes import encode_custom_mode  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,6 +45,7 @@ class GroundStation:
         self.z_ned: list[float] = []
         self.texts: list[str] = []
         self.acks: dict[int, int] = {}
+        self.params: dict[str, tuple[float, int, int, int]] = {}  # value, type, index, count
         self.streaming = False
         self._next_sp = 0.0
         self._ms = 0
@@ -59,6 +64,9 @@ class GroundStation:
                     self.texts.append(msg.text)
                 elif kind == "COMMAND_ACK":
                     self.acks[msg.command] = msg.result
+                elif kind == "PARAM_VALUE":
+                    self.params[msg.param_id] = (msg.param_value, msg.param_type,
+                                                 msg.param_index, msg.param_count)
             if self.streaming and time.monotonic() >= self._next_sp:
                 self._next_sp = time.monotonic() + 0.1
                 self._ms += 100
@@ -88,17 +96,18 @@ class GroundStation:
 
 
 @pytest.fixture
-def vehicle():
+def vehicle(tmp_path: Path):
     udp = [free_port(socket.SOCK_DGRAM) for _ in range(4)]
     gcs = GroundStation(udp[2])
     cmd = [sys.executable, "-m", "skyloop", "up", "--policy", "none", "--hub",
            f"tcp/127.0.0.1:{free_port()}", "--api-port", str(udp[0]), "--api-local-port",
            str(udp[1]), "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3]),
            "--param", "COM_OF_LOSS_T=0.5", "--param", "SKY_HOLD_LAND_T=1.0"]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, start_new_session=False)
+    env = dict(os.environ, XDG_STATE_HOME=str(tmp_path))
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=False)
     try:
-        yield gcs
+        yield gcs, tmp_path / "skyloop" / "params-sys1.json"
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -112,9 +121,28 @@ def vehicle():
 
 
 def test_ground_station_flies_the_vehicle(vehicle) -> None:
-    gcs = vehicle
+    gcs, params_file = vehicle
     gcs.until(lambda: gcs.heartbeat is not None, 120.0, "the vehicle's heartbeat")
     assert not gcs.armed and gcs.heartbeat.system_status == mavlink.MAV_STATE_STANDBY
+    assert gcs.heartbeat.autopilot == mavlink.MAV_AUTOPILOT_PX4
+    # Parameters: the whole table, in order, with the --param values.
+    names = [p.name for p in table.PARAMS]
+    gcs.conn.mav.param_request_list_send(1, 1)
+    gcs.until(lambda: set(gcs.params) == set(names), 5.0, "every PARAM_VALUE")
+    assert {n: gcs.params[n][2:] for n in names} == \
+        {n: (i, len(names)) for i, n in enumerate(names)}
+    expected = dict(table.defaults(), COM_OF_LOSS_T=0.5, SKY_HOLD_LAND_T=1.0)
+    assert {n: round(gcs.params[n][0], 5) for n in names} == expected
+    assert all(gcs.params[n][1] == mavlink.MAV_PARAM_TYPE_REAL32 for n in names)
+    gcs.params.clear()
+    gcs.conn.mav.param_request_read_send(1, 1, b"MPC_Z_VEL_MAX", -1)
+    gcs.until(lambda: "MPC_Z_VEL_MAX" in gcs.params, 5.0, "PARAM_VALUE MPC_Z_VEL_MAX")
+    assert gcs.params["MPC_Z_VEL_MAX"][0] == table.BY_NAME["MPC_Z_VEL_MAX"].default
+    gcs.conn.mav.param_set_send(1, 1, b"SKY_FLIGHT_LVL", 5.0, mavlink.MAV_PARAM_TYPE_REAL32)
+    gcs.until(lambda: "SKY_FLIGHT_LVL" in gcs.params, 5.0, "PARAM_VALUE SKY_FLIGHT_LVL")
+    assert gcs.params["SKY_FLIGHT_LVL"][0] == 5.0
+    saved = json.loads(params_file.read_text())["params"]
+    assert saved["SKY_FLIGHT_LVL"] == 5.0 and saved["COM_OF_LOSS_T"] == 1.0  # --param: not kept
     gcs.until(lambda: len(gcs.z_ned) > 5, 10.0, "LOCAL_POSITION_NED")
     ground = gcs.z_ned[-1]
     assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0) == mavlink.MAV_RESULT_ACCEPTED

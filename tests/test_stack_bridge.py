@@ -140,6 +140,11 @@ def test_setpoints_forwarded_with_frame_and_stamp(graph) -> None:
     assert m.twist_values(msgs[1]) == (-1.0, 2.0, 0.0, 0.5)
     wait_for(lambda: g.bridge.resends == 1 and g.bridge.published == 2, what="counters")
     assert cmds.get_nowait() is None
+    g.client.clock = lambda: g.client._t0  # time_boot_ms 0: not stamped  # noqa: SLF001
+    g.client._send_setpoint()  # noqa: SLF001
+    g.client._send_setpoint()  # each unstamped one is forwarded (MAVProxy's stream)  # noqa: SLF001
+    assert [m.nanoseconds(cmds.get(timeout=5.0).header.stamp) for _ in range(2)] == [0, 0]
+    assert g.bridge.resends == 1 and g.bridge.published == 4
 
 
 def test_a_vehicle_that_does_not_answer_is_busy(graph) -> None:
