@@ -26,9 +26,13 @@ param7 = altitude in metres *above the takeoff point*, NaN = the commander's def
 PX4 reads AMSL there; that needs the geodetic origin of issue 5), NAV_LAND (21),
 NAV_RETURN_TO_LAUNCH (20, i.e. mode RTL), DO_SET_MODE (176, PX4 custom modes), each
 answered by COMMAND_ACK carrying the commander's verdict; other commands are answered
-UNSUPPORTED. SET_POSITION_TARGET_LOCAL_NED is validated (:mod:`mavlink_bridge.validate`)
-and delivered to ``on_setpoint(command, now)``. Every refusal and every bad frame is
-counted (:attr:`VehicleLink.counters`); nothing received can raise out of :meth:`poll`.
+UNSUPPORTED. The SET_MODE message (11; QGroundControl's route for every PX4 mode change:
+its mode menu, Hold, Land, RTL) asks the same as DO_SET_MODE with ``custom_mode`` the
+whole PX4 value; it has no acknowledgement (the heartbeat and the commander's
+STATUSTEXT show the outcome), counted ``set_mode.<MAV_RESULT>``; its armed bit is ignored.
+SET_POSITION_TARGET_LOCAL_NED is validated (:mod:`mavlink_bridge.validate`) and
+delivered to ``on_setpoint(command, now)``. Every refusal and every bad frame is counted
+(:attr:`VehicleLink.counters`); nothing received can raise out of :meth:`poll`.
 Commander events reach ground stations through :meth:`VehicleLink.statustext`.
 Further messages and commands plug in through :attr:`VehicleLink.handlers` (message type
 -> handler) and :attr:`VehicleLink.commands` (command id -> MAV_RESULT function); a
@@ -154,6 +158,7 @@ class VehicleLink:
             "SET_POSITION_TARGET_LOCAL_NED": self._on_setpoint_msg,
             "COMMAND_LONG": self._on_command_long,
             "COMMAND_INT": self._on_command_int,
+            "SET_MODE": self._on_set_mode,
         }
         self.commands: dict[int, Callable[[Any, float], int]] = {
             mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
@@ -304,12 +309,24 @@ class VehicleLink:
         main, sub = _byte_param(msg.param2), _byte_param(msg.param3)
         if base is None or main is None or sub is None:
             return mavlink.MAV_RESULT_DENIED
+        return self._set_mode(base, Px4Mode(main, sub), now)
+
+    def _set_mode(self, base: int, mode: Px4Mode, now: float) -> int:
         if not base & BaseMode.CUSTOM_MODE_ENABLED:
             return mavlink.MAV_RESULT_UNSUPPORTED
-        state = state_for_px4_mode(Px4Mode(main, sub))
+        state = state_for_px4_mode(mode)
         if state is None:
             return mavlink.MAV_RESULT_UNSUPPORTED
         return mav_result(self.commander.set_mode(now, state))
+
+    def _on_set_mode(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
+        if msg.target_system != self.config.system_id:
+            self._counters["set_mode.other_target"] += 1
+            return
+        result = self._set_mode(msg.base_mode, Px4Mode.from_custom_mode(msg.custom_mode), now)
+        self._counters[f"set_mode.{result}"] += 1
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            self.services.send_due(now)  # the heartbeat shows the new mode at once
 
 
 class _CommandIntAsLong:

@@ -184,6 +184,44 @@ def test_gcs_sees_px4_heartbeat_commands_and_telemetry(gcs: mavutil.mavfile) -> 
         rig.link.close()
 
 
+def test_set_mode_message_changes_mode_as_qgroundcontrol_sends_it(
+        gcs: mavutil.mavfile) -> None:
+    """QGroundControl changes PX4 modes with SET_MODE (11): base_mode from the last
+    heartbeat with CUSTOM_MODE_ENABLED, custom_mode the whole PX4 value; no ACK."""
+    rig = Rig(api_port=None, gcs_port=gcs_port(gcs))
+    try:
+        rig.tick()
+        recv(gcs, "HEARTBEAT")
+        gcs.mav.command_long_send(1, 1, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0,
+                                  1, 0, 0, 0, 0, 0, 0)
+        rig.tick()
+        assert recv(gcs, "COMMAND_ACK").result == mavlink.MAV_RESULT_ACCEPTED
+        armed_custom = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | 1
+        takeoff = encode_custom_mode(4, 2)
+        gcs.mav.set_mode_send(1, armed_custom, takeoff)
+        rig.tick()
+        assert rig.commander.state == State.TAKEOFF
+        while (hb := recv(gcs, "HEARTBEAT")).custom_mode != takeoff:
+            pass
+        for target, base, custom in ((1, 0x80, AUTO_LAND.custom_mode),  # no custom flag
+                                     (1, armed_custom, encode_custom_mode(3)),  # POSCTL
+                                     (2, armed_custom, AUTO_LAND.custom_mode)):  # not us
+            gcs.mav.set_mode_send(target, base, custom)
+            rig.tick()
+            assert rig.commander.state == State.TAKEOFF
+        gcs.mav.set_mode_send(1, armed_custom, AUTO_LAND.custom_mode)
+        rig.tick()
+        assert rig.commander.state == State.LAND and rig.commander.armed
+        while (hb := recv(gcs, "HEARTBEAT")).custom_mode != AUTO_LAND.custom_mode:
+            pass
+        assert gcs.recv_match(type="COMMAND_ACK", blocking=False) is None  # never acked
+        c = rig.link.counters
+        assert (c["set_mode.0"], c["set_mode.3"], c["set_mode.other_target"]) == (2, 2, 1)
+        assert hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    finally:
+        rig.link.close()
+
+
 def test_link_answers_whoever_spoke_from_its_fixed_port(gcs: mavutil.mavfile) -> None:
     rig = Rig(api_port=None, gcs_port=gcs_port(gcs))
     other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # a second GCS elsewhere
