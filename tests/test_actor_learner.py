@@ -178,6 +178,7 @@ def test_two_workers_and_a_learner_on_loopback(tmp_path):
         episodes.setdefault(vehicle, {})[index] = steps
     shipped = load_actor(SHIPPED_POLICY)
     actors = {0: shipped, **{v: decode_actor(msg, shipped) for v, msg in versions.items()}}
+    first: dict[str, int] = {}
     for vehicle, n in nodes.items():
         swaps = n["policy"].json_lines(WEIGHTS_LINE)
         # Both policy nodes swapped to a learner version between episodes.
@@ -197,5 +198,9 @@ def test_two_workers_and_a_learner_on_loopback(tmp_path):
             if version:
                 other = flown_actions(steps.observations, steps.steps, actors[0])
                 assert np.abs(other - logged).max() > 1e-4
-        assert flown[0] == 0 and flown[EPISODES - 1] >= 1, flown
+        assert flown[EPISODES - 1] >= 1, flown
         assert list(flown.values()) == sorted(flown.values()), flown  # never backwards
+        first[vehicle] = flown[0]
+    # Nothing is published before an episode is whole, so the vehicle that finished the
+    # first episode flew it with version 0 (a slower one may start on version 1).
+    assert min(first.values()) == 0, first
