@@ -34,9 +34,13 @@ PARAMS: tuple[ParamDef, ...] = (
     ParamDef("SKY_HOLD_LAND_T", 5.0, 0.0, 600.0, "float", "s", "sim",
              "failsafe HOLD lasts this long, then LAND"),
     ParamDef("MPC_XY_VEL_MAX", 2.0, 0.1, 20.0, "float", "m/s", "sim",
-             "maximum horizontal speed the autopilot flies"),
+             "maximum horizontal speed the autopilot flies; limits each horizontal axis "
+             "(the env's box action space), PX4 limits the norm"),
     ParamDef("MPC_Z_VEL_MAX", 2.0, 0.1, 10.0, "float", "m/s", "sim",
              "maximum vertical speed the autopilot flies (up and down)"),
+    ParamDef("MIS_TAKEOFF_ALT", 2.5, 0.5, 100.0, "float", "m", "sim",
+             "takeoff altitude above the takeoff point when NAV_TAKEOFF gives none (NaN: "
+             "MAVSDK's takeoff; its set_takeoff_altitude sets this)"),
     ParamDef("GF_MAX_HOR_DIST", 60.0, 0.0, 10000.0, "float", "m", "sim",
              "geofence: horizontal distance from home beyond which RTL (0: off)"),
     ParamDef("SKY_FLIGHT_LVL", 3.5, 0.5, 100.0, "float", "m", "sim",

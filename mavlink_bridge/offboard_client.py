@@ -258,7 +258,9 @@ class OffboardClient:
                               21196.0 if force else 0.0)
 
     def takeoff(self, altitude: float | None = None) -> None:
-        """Take off to ``altitude`` m above the takeoff point (None: the vehicle's default)."""
+        """Take off to ``altitude`` m above the takeoff point (None: the vehicle's default,
+        MIS_TAKEOFF_ALT). skyloop reads a param7 at or below home's AMSL altitude as
+        relative (``vehicle_link.takeoff_altitude``); PX4 would read it as AMSL."""
         alt = math.nan if altitude is None else altitude
         self._expect_accepted(mavlink.MAV_CMD_NAV_TAKEOFF, 0.0, 0.0, 0.0, math.nan,
                               math.nan, math.nan, alt)

@@ -128,6 +128,11 @@ class TelemetryReporter:
         self.home = (float(position[0]), float(position[1]), float(position[2]))
         self.home_changed = True
 
+    @property
+    def home_amsl(self) -> float:
+        """Home's altitude AMSL in metres (the origin's before any position arrived)."""
+        return self.origin[2] + (0.0 if self.home is None else self.home[2])
+
     def step(self, now: float) -> None:
         """Battery drain; home set again at arming."""
         armed = bool(self.commander.armed)

@@ -22,8 +22,9 @@ behaviour every run; a real-time node calls it from its loop (or after ``select`
 :meth:`VehicleLink.fileno` values).
 
 Handled: COMMAND_LONG ARM_DISARM (400; param2 21196 forces a disarm), NAV_TAKEOFF (22;
-param7 = altitude in metres *above the takeoff point*, NaN = the commander's default --
-PX4 reads AMSL there; that needs the geodetic origin of issue 5), NAV_LAND (21),
+param7 read by :func:`takeoff_altitude`: NaN -> the vehicle's default, MIS_TAKEOFF_ALT;
+above home's AMSL altitude -> AMSL, as PX4 and QGroundControl; at or below it -> metres
+above the takeoff point, skyloop's extension for MAVProxy's ``takeoff 3``), NAV_LAND (21),
 NAV_RETURN_TO_LAUNCH (20, i.e. mode RTL), DO_SET_MODE (176, PX4 custom modes), each
 answered by COMMAND_ACK carrying the commander's verdict; other commands are answered
 UNSUPPORTED. The SET_MODE message (11; QGroundControl's route for every PX4 mode change:
@@ -122,6 +123,25 @@ def mav_result(verdict: Verdict) -> int:
     if verdict.reason in _UNSUPPORTED:
         return mavlink.MAV_RESULT_UNSUPPORTED
     return mavlink.MAV_RESULT_DENIED
+
+
+def takeoff_altitude(param7: float, home_amsl: float) -> float | None:
+    """NAV_TAKEOFF's param7 as metres to climb above the takeoff point (None: the
+    vehicle's default, MIS_TAKEOFF_ALT), given home's altitude AMSL (m).
+
+    * NaN: None (MAVSDK's ``action.takeoff()`` sends NaN and sets MIS_TAKEOFF_ALT with
+      ``set_takeoff_altitude``; PX4 then climbs MIS_TAKEOFF_ALT above home);
+    * above ``home_amsl``: an AMSL altitude, as PX4 reads it (QGroundControl sends the
+      vehicle's AMSL altitude + the relative one): ``param7 - home_amsl``;
+    * at or below ``home_amsl``: already metres above the takeoff point (skyloop's
+      extension, so MAVProxy's ``takeoff 3`` and ``OffboardClient.takeoff(3)`` work; a
+      relative altitude above home's AMSL altitude would be read as AMSL).
+
+    Nothing is checked here: the commander refuses what it cannot fly (``bad_altitude``).
+    """
+    if math.isnan(param7):
+        return None
+    return param7 - home_amsl if param7 > home_amsl else param7
 
 
 def _byte_param(value: float) -> int | None:
@@ -301,8 +321,8 @@ class VehicleLink:
         return mavlink.MAV_RESULT_DENIED
 
     def _cmd_takeoff(self, msg: Any, now: float) -> int:
-        alt = msg.param7
-        return mav_result(self.commander.takeoff(now, None if math.isnan(alt) else alt))
+        altitude = takeoff_altitude(float(msg.param7), self.reporter.home_amsl)
+        return mav_result(self.commander.takeoff(now, altitude))
 
     def _cmd_set_mode(self, msg: Any, now: float) -> int:
         base = _byte_param(msg.param1)

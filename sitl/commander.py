@@ -13,7 +13,7 @@ States (PX4 semantics; the bridge reports them as PX4 modes, see
 ``mavlink_bridge.modes``)::
 
     DISARMED --arm (landed)--> ARMED --takeoff--> TAKEOFF --at altitude--> HOLD
-    ARMED/TAKEOFF/HOLD/LAND --set_mode OFFBOARD (setpoints streaming)--> OFFBOARD
+    ARMED/TAKEOFF/HOLD/LAND --set_mode OFFBOARD (a recent setpoint)--> OFFBOARD
     OFFBOARD --no setpoint for setpoint_timeout--> HOLD (failsafe)
     HOLD (failsafe) --hold_before_land--> LAND --touchdown--> DISARMED
     any in-air state --land / set_mode HOLD / set_mode RTL--> LAND / HOLD / RTL
@@ -21,23 +21,27 @@ States (PX4 semantics; the bridge reports them as PX4 modes, see
     RTL --climb, return, descend, touchdown--> DISARMED
     ARMED --disarm_preflight without takeoff--> DISARMED;  any --collision--> DISARMED
 
-* OFFBOARD is accepted only while setpoints stream: more than ``stream_min_rate``
-  setpoints per second over the last ``stream_window`` seconds (> 2 in the last 1 s by
-  default) and the newest no older than ``1 / stream_min_rate``.
+* OFFBOARD is accepted only while offboard control is *available*, PX4's check
+  (``offboardCheck``): the newest setpoint is no older than ``setpoint_timeout``
+  (COM_OF_LOSS_T, the loss failsafe's threshold, so "available" is exactly "not lost").
+  One recent setpoint is enough, as MAVSDK's "set a setpoint, then ``offboard.start()``"
+  expects; none, or only stale ones: ``no_setpoint_stream``. Staying in OFFBOARD takes
+  a setpoint at least every ``setpoint_timeout``.
 * Setpoint loss: at the first :meth:`step` where the newest setpoint is older than
   ``setpoint_timeout`` (strictly, with a 1 ns tolerance for float time), OFFBOARD falls
   to HOLD (a failsafe); at the first step ``hold_before_land`` seconds after that, to
   LAND (``math.inf``: hold forever). Setpoints coming back do not resume OFFBOARD by
   themselves (as PX4): the client asks for OFFBOARD again, which ends the failsafe.
-* Setpoints are always recorded (so a stream can be shown before the switch) but flown
+* Setpoints are always recorded (so one can be offered before the switch) but flown
   only in OFFBOARD. Body-frame setpoints (forward, left, up) are rotated by the
   vehicle's current yaw at each step, with the same arithmetic as
   ``sitl.episode.body_to_world``; an absolute heading target becomes a yaw rate
   ``yaw_gain * wrap(target - yaw)``, clamped to ``max_yaw_rate``.
 * Takeoff climbs to ``altitude`` (default ``takeoff_altitude``) above the height where
-  the takeoff was accepted, at ``min(takeoff_speed, takeoff_gain * error)``, then holds.
-  LAND descends at ``land_speed``; touchdown is the land detector (height above ground
-  and vertical speed under thresholds for ``land_detect_time``), then it disarms.
+  the takeoff was accepted (the next :meth:`step`'s if none came before), at
+  ``min(takeoff_speed, takeoff_gain * error)``, then holds. LAND descends at
+  ``land_speed``; touchdown is the land detector (height above ground and vertical
+  speed under thresholds for ``land_detect_time``), then it disarms.
 * A collision disarms, is reported, and latches: arming is refused until :meth:`reset`.
 * Home is where the vehicle armed (or where :meth:`~Commander.place` put it). RTL climbs
   to ``flight_level`` above the ground (or keeps its height if already higher) at
@@ -57,7 +61,6 @@ Verdict reasons: ``not_landed``, ``invalid_state``, ``not_armed``, ``in_air``,
 from __future__ import annotations
 
 import math
-from collections import deque
 
 from sitl.commander_types import (
     ACCEPTED,
@@ -91,15 +94,14 @@ class Commander:
         self._failsafe: str | None = None
         self._failsafe_since = 0.0
         self._armed_since = now
-        self._stream: deque[float] = deque()
         self._last_setpoint_time = -math.inf
         self._sp = (0.0, 0.0, 0.0, 0.0)
         self._sp_body = False
         self._sp_yaw: float | None = None
         self._sample: VehicleSample | None = None
         self._low_since: float | None = None  # land detector: conditions hold since
-        self._takeoff_base = 0.0  # z where the climb started
-        self._takeoff_target = 0.0
+        self._takeoff_base: float | None = 0.0  # z where the climb started (None: next step's)
+        self._takeoff_alt = 0.0  # m above the base
         self._home: tuple[float, float] | None = None  # (x, y) where it armed
         self._rehome = False  # take home from the next sample
         self._rtl_z = 0.0  # altitude of the return leg
@@ -171,20 +173,12 @@ class Commander:
         self._sp_body = bool(body)
         self._sp_yaw = None if yaw is None else float(yaw)
         self._last_setpoint_time = now
-        self._stream.append(now)
-        self._trim_stream(now)
         return True
 
-    def _trim_stream(self, now: float) -> None:
-        while self._stream and self._stream[0] <= now - self.config.stream_window + EPS:
-            self._stream.popleft()
-
-    def streaming(self, now: float) -> bool:
-        """True if setpoints arrive faster than ``stream_min_rate`` (see module doc)."""
-        c = self.config
-        self._trim_stream(now)
-        fresh = now - self._last_setpoint_time <= 1.0 / c.stream_min_rate + EPS
-        return fresh and len(self._stream) > c.stream_min_rate * c.stream_window + EPS
+    def offboard_available(self, now: float) -> bool:
+        """True if the newest setpoint is no older than ``setpoint_timeout`` (see the
+        module docstring): what OFFBOARD needs, the negation of setpoint loss."""
+        return now - self._last_setpoint_time <= self.config.setpoint_timeout + EPS
 
     # ------------------------------------------------------------------ requests
     def arm(self, now: float) -> Verdict:
@@ -222,9 +216,9 @@ class Commander:
         if self._state not in (State.ARMED, State.TAKEOFF):
             return self._refuse(now, "invalid_state", "Takeoff denied: already flying")
         if self._state == State.ARMED:
-            self._takeoff_base = self._sample.z if self._sample is not None else 0.0
+            self._takeoff_base = self._sample.z if self._sample is not None else None
             self._go(now, State.TAKEOFF, f"Takeoff to {altitude:.1f} m")
-        self._takeoff_target = self._takeoff_base + altitude  # TAKEOFF: a new target
+        self._takeoff_alt = altitude  # TAKEOFF: a new target above the same base
         return ACCEPTED
 
     def land(self, now: float) -> Verdict:
@@ -262,8 +256,8 @@ class Commander:
         """Switch to ``"OFFBOARD"``, ``"HOLD"``, ``"LAND"``, ``"TAKEOFF"`` or ``"RTL"``.
 
         On the ground HOLD (and LAND while disarmed) is accepted and changes nothing:
-        that is what the vehicle already reports. OFFBOARD needs the vehicle armed and
-        setpoints streaming. Unknown names are ``unsupported_mode``.
+        that is what the vehicle already reports. OFFBOARD needs the vehicle armed and a
+        recent setpoint (:meth:`offboard_available`). Unknown names: ``unsupported_mode``.
         """
         if state == State.RTL:
             return self.return_home(now)
@@ -281,7 +275,7 @@ class Commander:
         if state == State.OFFBOARD:
             if not self.armed:
                 return self._refuse(now, "not_armed", "Offboard denied: not armed")
-            if not self.streaming(now):
+            if not self.offboard_available(now):
                 return self._refuse(now, "no_setpoint_stream", "Offboard denied: no setpoints")
             self._failsafe = None
             if self._state != State.OFFBOARD:
@@ -327,7 +321,9 @@ class Commander:
                 return Setpoint(0.0, 0.0, -c.land_speed, 0.0)
             return ZERO
         if s == State.TAKEOFF:
-            error = self._takeoff_target - sample.z
+            if self._takeoff_base is None:  # accepted before any step: the base is here
+                self._takeoff_base = sample.z
+            error = self._takeoff_base + self._takeoff_alt - sample.z
             if error <= c.takeoff_tolerance:
                 self._go(now, State.HOLD, "Takeoff complete, holding")
                 return ZERO

@@ -29,10 +29,8 @@ class State(StrEnum):
 class CommanderConfig:
     """Commander parameters (PX4 / ``bus.params`` names in brackets)."""
 
-    setpoint_timeout: float = 1.0  # s without a setpoint in OFFBOARD -> HOLD [COM_OF_LOSS_T]
+    setpoint_timeout: float = 1.0  # s, setpoint older: OFFBOARD refused, left [COM_OF_LOSS_T]
     hold_before_land: float = 5.0  # s in failsafe HOLD -> LAND, inf: never [SKY_HOLD_LAND_T]
-    stream_window: float = 1.0  # s over which the setpoint rate is measured
-    stream_min_rate: float = 2.0  # Hz that must be exceeded to enter OFFBOARD
     takeoff_altitude: float = 2.5  # m above the takeoff point [MIS_TAKEOFF_ALT]
     max_takeoff_altitude: float = 100.0  # m, larger requests are refused
     takeoff_speed: float = 1.5  # m/s [MPC_TKO_SPEED]

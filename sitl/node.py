@@ -47,7 +47,8 @@ episode steps over the run (integer nanoseconds, exact); the commander's own clo
 counts every control step flown (ground phase included) and never goes backwards.
 
 **Commands** (``cmd_vel``, TwistStamped, from the bridge): every one is offered to the
-commander (:meth:`~sitl.commander.Commander.setpoint`; the stream OFFBOARD needs).
+commander (:meth:`~sitl.commander.Commander.setpoint`; OFFBOARD needs a recent one; an
+OFFBOARD request waits briefly for one on its way, see :mod:`sitl.vehicle_service`).
 ``frame_id`` ``"base_link"``: body-horizontal FLU + CCW yaw rate; ``"world"``: ENU; a
 ``"|yaw"`` suffix: ``angular.z`` is an absolute ENU heading target. In OFFBOARD a
 ``base_link`` command is flown with :meth:`EpisodeSim.step_body` (as the env: rotated by

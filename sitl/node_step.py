@@ -68,6 +68,7 @@ class StepLoop:
         self.goals = bus.inbox(keys.GOAL, v, maxsize=16)
         self.commander = Commander()
         self.service = VehicleService(bus, v, self.commander, self.sim.vehicle)
+        self.service.take_setpoints = self._await_command
         for name, value in c.params.items():
             if not self.service.set_param(name, value):
                 raise ValueError(f"bad parameter {name}={value!r} (see bus/params.py)")
@@ -150,6 +151,18 @@ class StepLoop:
         while (msg := self.cmds.get_nowait()) is not None:
             self._offer(msg)
             self._last_cmd = msg
+
+    def _await_command(self, timeout: float) -> bool:
+        """Offer the next ``cmd_vel`` (waiting up to ``timeout`` s) and any behind it;
+        True if one came (``VehicleService.take_setpoints``)."""
+        try:
+            msg = self.cmds.get(timeout=timeout)
+        except TimeoutError:
+            return False
+        self._offer(msg)
+        self._last_cmd = msg
+        self._drain_commands()
+        return True
 
     def _wait_command(self, t_pub: float, deadline: float | None) -> Any:
         """The command stamped with the current step. Lockstep (``deadline`` None): wait

@@ -7,9 +7,14 @@ few milliseconds while it waits), so requests are answered within a step.
 
 * **Requests** (``skyloop/<vehicle>/command``, a Zenoh query, ``VehicleCommand`` ->
   ``CommandAck``): ``arm``, ``disarm`` (``param1 == 1``: forced), ``takeoff``
-  (``param1``: altitude above the takeoff point, NaN: default), ``land``, ``rtl`` and
+  (``param1``: metres above the takeoff point, NaN: the default, MIS_TAKEOFF_ALT; the
+  bridge has already turned NAV_TAKEOFF's AMSL altitude into this), ``land``, ``rtl`` and
   ``set_mode`` (``mode``: OFFBOARD, HOLD, LAND, TAKEOFF, RTL). The answer carries the
   commander's verdict and its state right after it. Unknown commands: ``unsupported``.
+  OFFBOARD without a recent setpoint first gives :attr:`VehicleService.take_setpoints`
+  up to ``SETPOINT_GRACE_S``: a client's "set a setpoint, then OFFBOARD" reaches the
+  bridge in that order, but the bus may hand the sim the request before the setpoint
+  (the query is queued natively, the setpoint waits for a Python callback).
 * **Status** (``skyloop/<vehicle>/status``, ``VehicleStatus``): published when the
   state or the flags change or events happened (transitions, failsafes, refusals: each
   becomes a STATUSTEXT at the bridge), and at least every ``keepalive_s`` of wall time.
@@ -26,6 +31,7 @@ import logging
 import math
 import time
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 from bus import keys, params
@@ -34,6 +40,7 @@ from bus.node import Bus
 from sitl.commander import Commander, Verdict
 
 log = logging.getLogger("skyloop.sim")
+SETPOINT_GRACE_S = 0.05  # s an OFFBOARD request waits for a setpoint still on its way
 
 
 def apply_param(name: str, value: float, commander: Commander, vehicle: Any) -> bool:
@@ -52,6 +59,8 @@ def apply_param(name: str, value: float, commander: Commander, vehicle: Any) -> 
         if vehicle is not None:
             vehicle.autopilot.max_speed_z = value
         c.rtl_climb_speed = value
+    elif name == "MIS_TAKEOFF_ALT":
+        c.takeoff_altitude = value
     elif name == "GF_MAX_HOR_DIST":
         c.geofence = value
     elif name == "SKY_FLIGHT_LVL":
@@ -77,6 +86,9 @@ class VehicleService:
         self._events: list[tuple[str, str, str]] = []
         self._fields: tuple | None = None
         self._next_keepalive = 0.0
+        #: The node's "offer the setpoints on their way, waiting up to this many seconds
+        #: for one" (see the module docstring); None: no wait.
+        self.take_setpoints: Callable[[float], object] | None = None
 
     # ------------------------------------------------------------------ parameters
     def set_param(self, name: str, value: float) -> bool:
@@ -109,6 +121,9 @@ class VehicleService:
         if cmd == "rtl":
             return c.set_mode(now, "RTL")
         if cmd == "set_mode":
+            if msg.mode == "OFFBOARD" and self.take_setpoints is not None and \
+                    not c.offboard_available(now):
+                self.take_setpoints(SETPOINT_GRACE_S)
             return c.set_mode(now, msg.mode)
         return Verdict(False, "unsupported")
 

@@ -256,8 +256,8 @@ def add_stack_commands(sub: Any) -> None:
                         "missions and clicks); between goals the vehicle holds")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="vehicle parameter (bus/params.py: COM_OF_LOSS_T, SKY_HOLD_LAND_T, "
-                        "MPC_XY_VEL_MAX, MPC_Z_VEL_MAX, GF_MAX_HOR_DIST, SKY_FLIGHT_LVL, "
-                        "SKY_ICO_RADIUS)")
+                        "MPC_XY_VEL_MAX, MPC_Z_VEL_MAX, MIS_TAKEOFF_ALT, GF_MAX_HOR_DIST, "
+                        "SKY_FLIGHT_LVL, SKY_ICO_RADIUS)")
     p.add_argument("--lockstep-timeout", type=float, default=2.0,
                    help="lockstep: wall seconds to wait for a step's command in OFFBOARD "
                         "before flying without it (default 2)")

@@ -183,27 +183,35 @@ def test_modes_on_the_ground_are_accepted_noops_or_refused() -> None:
 
 
 # ------------------------------------------------------------------ offboard
-def test_offboard_needs_a_stream() -> None:
-    c, sim = airborne()
+def test_offboard_needs_a_recent_setpoint() -> None:
+    """PX4's check: one setpoint no older than COM_OF_LOSS_T; none or a stale one: no."""
+    c, sim = airborne(CommanderConfig(setpoint_timeout=1.0))
+    assert refused(c.set_mode(sim.now, "OFFBOARD"), "no_setpoint_stream")  # none yet
+    assert not c.offboard_available(sim.now)
+    sim.stream(1)  # a single setpoint, as MAVSDK's set_velocity_* then start()
+    assert c.offboard_available(sim.now)
+    sim.step(10)  # the newest exactly 1.0 s old: still available (not lost)
+    assert c.offboard_available(sim.now)
+    sim.step(1)  # 1.1 s old: stale
     assert refused(c.set_mode(sim.now, "OFFBOARD"), "no_setpoint_stream")
-    sim.stream(2)  # 2 setpoints in the last second: not > 2 Hz
-    assert refused(c.set_mode(sim.now, "OFFBOARD"), "no_setpoint_stream")
+    assert c.state == State.HOLD and c.pop_events()[-1].text == "Offboard denied: no setpoints"
     sim.stream(1)
-    assert c.streaming(sim.now)
-    sim.step(6)  # 3 in the window, but the newest is 0.6 s old
-    assert refused(c.set_mode(sim.now, "OFFBOARD"), "no_setpoint_stream")
-    sim.stream(3)
     assert c.set_mode(sim.now, "OFFBOARD").accepted and c.state == State.OFFBOARD
 
 
-def test_offboard_refused_at_exactly_2_hz() -> None:
+def test_offboard_accepted_at_the_same_instant_as_the_first_setpoint() -> None:
     c, sim = airborne()
-    for _ in range(4):
-        sim.step(4)
-        sim.stream(1)  # one setpoint every 0.5 s
-    assert refused(c.set_mode(sim.now, "OFFBOARD"), "no_setpoint_stream")
-    sim.step(1)
+    assert c.setpoint(sim.now, 1.0, 0.0, 0.0, 0.0)
+    assert c.set_mode(sim.now, "OFFBOARD").accepted
+    assert sim.step() == (1.0, 0.0, 0.0, 0.0)
+
+
+def test_offboard_availability_follows_com_of_loss_t() -> None:
+    c, sim = airborne(CommanderConfig(setpoint_timeout=0.5))
     sim.stream(1)
+    sim.step(6)  # 0.6 s > 0.5 s
+    assert refused(c.set_mode(sim.now, "OFFBOARD"), "no_setpoint_stream")
+    c.config.setpoint_timeout = 2.0  # COM_OF_LOSS_T raised (vehicle_service.apply_param)
     assert c.set_mode(sim.now, "OFFBOARD").accepted
 
 
@@ -288,6 +296,19 @@ def test_offboard_from_armed_on_ground_and_land_mode_in_air() -> None:
     assert c.set_mode(sim.now, "LAND").accepted and c.state == State.LAND
     assert c.set_mode(sim.now, "HOLD").accepted and c.state == State.HOLD  # abort landing
     assert refused(c.set_mode(sim.now, "TAKEOFF"), "invalid_state")
+
+
+def test_takeoff_before_the_first_step_climbs_from_where_the_vehicle_is() -> None:
+    """A request served before the commander's first step (the sim's first control
+    step): the base is the first sample's height, not 0."""
+    c = Commander()
+    assert c.arm(0.0).accepted and c.takeoff(0.0, 2.0).accepted  # no sample yet
+    sim = Sim(c, z=0.5)
+    for _ in range(200):
+        if c.state != State.TAKEOFF:
+            break
+        sim.step()
+    assert c.state == State.HOLD and 2.4 <= sim.z <= 2.5
 
 
 def test_takeoff_can_be_interrupted_by_offboard_or_land() -> None:

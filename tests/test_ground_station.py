@@ -151,7 +151,7 @@ def test_ground_station_flies_the_vehicle(vehicle) -> None:
                        float("nan")) == mavlink.MAV_RESULT_ACCEPTED
     gcs.until(lambda: gcs.z_ned[-1] < ground - 2.0, 20.0, "altitude up 2 m")  # NED: up < 0
     gcs.streaming = True
-    gcs.pump(1.0)  # > 2 Hz for a second
+    gcs.pump()  # the first setpoint goes out at once; PX4's rule: one recent setpoint
     assert gcs.command(mavlink.MAV_CMD_DO_SET_MODE, 1, 6, 0) == mavlink.MAV_RESULT_ACCEPTED
     gcs.until(lambda: gcs.heartbeat.custom_mode == OFFBOARD_MODE, 5.0, "OFFBOARD")
     gcs.pump(1.0)

@@ -52,7 +52,7 @@ class Vehicle:
     def snapshot(self) -> tuple:
         c = self.commander
         return (c.state, c.armed, c.failsafe, c.landed, c.crashed, c._sp, c._sp_body,
-                c._sp_yaw, c._last_setpoint_time, len(c._stream), len(self.setpoints),
+                c._sp_yaw, c._last_setpoint_time, len(self.setpoints),
                 tuple(sorted(self.link.params.values.items())),
                 self.link.endpoints["api"].peer)
 

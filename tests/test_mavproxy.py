@@ -40,6 +40,7 @@ os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
+from bus import params as table  # noqa: E402
 from mavlink_bridge.modes import AUTO_LAND, OFFBOARD  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -183,7 +184,8 @@ def test_mavproxy_flies_the_vehicle(rig) -> None:
     ground = ear.pos[-1][2]
 
     # It reads the parameters: the whole list, COM_OF_LOSS_T as --param set it.
-    until(lambda: mp.said("Received 7 parameters"), 30.0, "the parameter list")
+    until(lambda: mp.said(f"Received {len(table.PARAMS)} parameters"), 30.0,
+          "the parameter list")
     assert {"COM_OF_LOSS_T", "SKY_HOLD_LAND_T", "MPC_XY_VEL_MAX", "SKY_FLIGHT_LVL"} <= \
         set(ear.params)
     mark = len(mp.take())
@@ -206,9 +208,10 @@ def test_mavproxy_flies_the_vehicle(rig) -> None:
     until(lambda: "Takeoff complete, holding" in ear.texts, 20.0, "takeoff complete")
     assert mp.said("Got COMMAND_ACK: NAV_TAKEOFF: ACCEPTED", mark)
 
-    # Offboard: stream velocity setpoints, then switch (re-sent until the stream counts).
+    # Offboard: stream velocity setpoints, then switch (PX4's rule: a recent setpoint;
+    # re-sent in case MAVProxy's first repeat had not gone out yet).
     mp.send(FLIGHT[4])  # repeat add 0.1 velocity 2 0 0
-    ear.pump(1.0)
+    ear.pump(0.3)
     mark = len(mp.take())
     until(lambda: ear.custom_mode == OFFBOARD.custom_mode, 15.0, "OFFBOARD in the heartbeat",
           every=2.0, resend=FLIGHT[5])

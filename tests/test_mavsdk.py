@@ -2,13 +2,11 @@
 
 MAVSDK connects as PX4 SITL users do, on the API link (the vehicle sends to the port
 skyloop's policy would listen on; with ``--policy none`` it is free): it discovers a PX4
-autopilot, reads every parameter, arms, takes off (the vehicle's default altitude),
-flies a body-frame velocity in OFFBOARD and lands, the vehicle disarming on touchdown.
-
-One difference from PX4 is written out: MAVSDK's ``offboard.start()`` right after the
-first setpoint is refused here ("Offboard denied: no setpoints": the vehicle wants more
-than 2 setpoints in the last second, PX4 one recent one), so the test lets MAVSDK's
-20 Hz stream run for a second first, as the README tells users to.
+autopilot, reads every parameter, sets the takeoff altitude (``set_takeoff_altitude``:
+the MIS_TAKEOFF_ALT parameter), arms, takes off to it (``takeoff()`` sends NaN: the
+vehicle flies MIS_TAKEOFF_ALT), sets a body-frame velocity and starts OFFBOARD at once
+(PX4's rule: one recent setpoint), flies it and lands, the vehicle disarming on
+touchdown.
 """
 
 from __future__ import annotations
@@ -39,6 +37,7 @@ from mavsdk.plugins.telemetry import FlightMode, LandedState  # noqa: E402
 from bus import params as table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
+TAKEOFF_ALT = 3.5  # m, set through MIS_TAKEOFF_ALT (default 2.5)
 
 
 @pytest.fixture
@@ -86,15 +85,20 @@ async def fly(port: int) -> None:
         assert every["COM_OF_LOSS_T"] == 0.5 and every["SKY_FLIGHT_LVL"] == 3.5
         assert not await tel.armed() and await tel.flight_mode() == FlightMode.HOLD
 
+        await act.set_takeoff_altitude(TAKEOFF_ALT)  # MIS_TAKEOFF_ALT, not the default
+        assert await act.get_takeoff_altitude() == TAKEOFF_ALT
         await act.arm()
         await act.takeoff()
         await until(lambda: _above(tel, 2.0), 30.0, "2 m above home")
         await until(lambda: _mode(tel, FlightMode.HOLD), 20.0, "takeoff done (Hold)")
+        # MIS_TAKEOFF_ALT flown (the default, 2.5 m, would never get there); telemetry
+        # lags the mode change, so wait for it to settle
+        await until(lambda: _near(tel, TAKEOFF_ALT, 0.25), 10.0, f"{TAKEOFF_ALT} m above home")
 
         await off.set_velocity_body(VelocityBodyYawspeed(1.0, 0.0, 0.0, 0.0))
-        await asyncio.sleep(1.0)  # MAVSDK streams at 20 Hz; the vehicle wants a stream
-        await off.start()
-        assert await tel.flight_mode() == FlightMode.OFFBOARD
+        await off.start()  # right after the first setpoint, as PX4 allows
+        # start() returns on the COMMAND_ACK; the heartbeat that shows the mode follows it
+        await until(lambda: _mode(tel, FlightMode.OFFBOARD), 3.0, "OFFBOARD in the heartbeat")
         start = (await tel.position_velocity_ned()).position
         await until(lambda: _moved(tel, start, 1.5), 15.0, "1.5 m flown in OFFBOARD")
         assert await tel.flight_mode() == FlightMode.OFFBOARD  # MAVSDK's stream keeps it
@@ -106,6 +110,10 @@ async def fly(port: int) -> None:
 
 async def _above(tel: TelemetryAsync, metres: float) -> bool:
     return (await tel.position()).relative_altitude_m > metres
+
+
+async def _near(tel: TelemetryAsync, metres: float, tolerance: float) -> bool:
+    return abs((await tel.position()).relative_altitude_m - metres) < tolerance
 
 
 async def _mode(tel: TelemetryAsync, mode: FlightMode) -> bool:

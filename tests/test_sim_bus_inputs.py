@@ -142,3 +142,33 @@ def test_free_flight_episode_ends_at_its_goal(free_sim) -> None:
     seeded = node.sim.world.sample_start_goal(np.random.default_rng(node.config.seed + 2))[1]
     assert (third.goal.x, third.goal.y, third.goal.z) == tuple(seeded)
     assert node.commander.state == "DISARMED"  # it never moved: still on the ground
+
+
+def test_offboard_request_served_right_behind_its_setpoint() -> None:
+    """MAVSDK's "set a setpoint, then ``offboard.start()``": the bridge forwards both in
+    that order, but the sim can find the request queued before the setpoint is offered
+    (a query is queued natively, a ``cmd_vel`` waits for a Python callback). Here the
+    setpoint waits in the node's inbox, not yet offered, when the request is served: the
+    request takes it first (``VehicleService.take_setpoints``), OFFBOARD is accepted."""
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    sim_bus, bus = Bus.open(cfg), Bus.open(cfg)
+    try:
+        node = SimNode(sim_bus, SimNodeConfig(free_flight=True, realtime=True))
+        node.commander.reset(node.now(), airborne=True)  # flying, in HOLD
+        cmds = bus.publisher(keys.CMD_VEL, "uav1")
+        assert cmds.wait_matched()
+        cmds.put(m.twist_stamped(1.0, 0.0, 0.0, 0.0, 0.0))
+        wait_for(lambda: len(node.cmds) == 1, what="the setpoint in the node's inbox")
+        assert not node.commander.offboard_available(node.now())  # not offered yet
+        answers: list = []
+        asker = threading.Thread(target=lambda: answers.append(bus.query(
+            keys.COMMAND, "uav1", m.vehicle_command("set_mode", "OFFBOARD"), m.COMMAND_ACK,
+            timeout=5.0)))
+        asker.start()
+        wait_for(lambda: node.service.serve(node.now()) == 1, what="the request served")
+        asker.join(5.0)
+        assert answers[0] is not None and answers[0].accepted, answers
+        assert node.commander.state == "OFFBOARD" and len(node.cmds) == 0
+    finally:
+        sim_bus.close()
+        bus.close()

@@ -107,7 +107,7 @@ def test_commands_reach_the_sims_commander(graph) -> None:
     assert g.commander.state == State.ARMED
     assert g.client.wait(lambda: g.client.armed, 2.0)  # the heartbeat follows the answer
     with pytest.raises(CommandRejected) as err:  # refused by the sim's commander: DENIED
-        g.client.takeoff(500.0)
+        g.client.takeoff(700.0)  # AMSL (above home's 488 m): 212 m up, more than 100 m
     assert err.value.result == mavlink.MAV_RESULT_DENIED
     g.client.takeoff(2.0)
     assert g.commander.state == State.TAKEOFF
