@@ -85,7 +85,8 @@ class CommanderLike(Protocol):
     @property
     def state(self) -> str:
         """``"DISARMED"``, ``"ARMED"``, ``"TAKEOFF"``, ``"OFFBOARD"``, ``"HOLD"``,
-        ``"LAND"`` or ``"RTL"`` (a ``str`` enum is fine)."""
+        ``"LAND"`` or ``"RTL"`` (a ``str`` enum is fine); the mode, reported with
+        :attr:`armed` (``"TAKEOFF"`` disarmed: a takeoff waiting for arming)."""
         ...
 
     @property

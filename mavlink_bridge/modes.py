@@ -110,7 +110,8 @@ AUTO_RTL = Px4Mode(MainMode.AUTO, AutoSubMode.RTL)
 AUTO_LAND = Px4Mode(MainMode.AUTO, AutoSubMode.LAND)
 
 # Commander state name -> the PX4 mode the heartbeat reports. On the ground (disarmed or
-# armed idle) PX4 usually sits in Hold (AUTO.LOITER); so do we.
+# armed idle) PX4 usually sits in Hold (AUTO.LOITER); so do we. "TAKEOFF" comes disarmed
+# too (a takeoff waiting for arming, see sitl.commander): AUTO.TAKEOFF, as PX4 reports it.
 _STATE_TO_PX4: dict[str, Px4Mode] = {
     "DISARMED": AUTO_LOITER,
     "ARMED": AUTO_LOITER,

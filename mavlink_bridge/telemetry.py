@@ -15,8 +15,9 @@ frame and two small models kept here:
 
 GPS is ideal and reported as such (3D fix, 10 satellites, HDOP 0.8, 0.5 m horizontal
 accuracy); time fields (``time_boot_ms``/``time_usec``) are the telemetry's ``time``.
-Landed state (EXTENDED_SYS_STATE): TAKEOFF while the commander takes off, else ON_GROUND
-when its land detector says landed, LANDING in LAND, IN_AIR otherwise. SYS_STATUS
+Landed state (EXTENDED_SYS_STATE): TAKEOFF while the commander takes off (armed; a
+takeoff waiting disarmed for arming, AUTO.TAKEOFF in the heartbeat as with PX4, is not),
+else ON_GROUND when its land detector says landed, LANDING in LAND, IN_AIR otherwise. SYS_STATUS
 reports gyro, accel, mag, baro, GPS, AHRS, battery, geofence (unhealthy while the
 commander's ``failsafe_reason`` is ``"geofence"``) and the control loops present,
 enabled and healthy, and MAV_SYS_STATUS_PREARM_CHECK healthy when the vehicle can arm
@@ -91,7 +92,7 @@ class BatteryModel:
 def landed_state(commander: CommanderLike) -> int:
     """MAV_LANDED_STATE from the commander (see the module docstring)."""
     state = str(commander.state)
-    if state == "TAKEOFF":
+    if state == "TAKEOFF" and commander.armed:  # disarmed: a takeoff waiting for arming
         return M.MAV_LANDED_STATE_TAKEOFF
     if commander.landed:
         return M.MAV_LANDED_STATE_ON_GROUND
@@ -132,6 +133,15 @@ class TelemetryReporter:
     def home_amsl(self) -> float:
         """Home's altitude AMSL in metres (the origin's before any position arrived)."""
         return self.origin[2] + (0.0 if self.home is None else self.home[2])
+
+    @property
+    def takeoff_amsl(self) -> float:
+        """The takeoff point's altitude AMSL (m), what NAV_TAKEOFF's AMSL altitude is read
+        against: on the ground, where the vehicle stands (QGroundControl sends its AMSL
+        altitude + the relative one, before arming moves home there); else home's."""
+        if self.telemetry is not None and self.commander.landed:
+            return self.origin[2] + float(self.telemetry.position[2])
+        return self.home_amsl
 
     def step(self, now: float) -> None:
         """Battery drain; home set again at arming."""

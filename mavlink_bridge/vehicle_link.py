@@ -22,9 +22,11 @@ behaviour every run; a real-time node calls it from its loop (or after ``select`
 :meth:`VehicleLink.fileno` values).
 
 Handled: COMMAND_LONG ARM_DISARM (400; param2 21196 forces a disarm), NAV_TAKEOFF (22;
-param7 read by :func:`takeoff_altitude`: NaN -> the vehicle's default, MIS_TAKEOFF_ALT;
-above home's AMSL altitude -> AMSL, as PX4 and QGroundControl; at or below it -> metres
-above the takeoff point, skyloop's extension for MAVProxy's ``takeoff 3``), NAV_LAND (21),
+param7 read by :func:`takeoff_altitude` against the takeoff point's AMSL altitude,
+``TelemetryReporter.takeoff_amsl``: NaN -> the vehicle's default, MIS_TAKEOFF_ALT; above
+it -> AMSL, as PX4 and QGroundControl; at or below it -> metres above the takeoff point,
+skyloop's extension for MAVProxy's ``takeoff 3``; accepted disarmed too, as PX4: the
+vehicle reports AUTO.TAKEOFF and climbs once armed, QGroundControl's Takeoff), NAV_LAND (21),
 NAV_RETURN_TO_LAUNCH (20, i.e. mode RTL), DO_SET_MODE (176, PX4 custom modes), each
 answered by COMMAND_ACK carrying the commander's verdict; other commands are answered
 UNSUPPORTED. The SET_MODE message (11; QGroundControl's route for every PX4 mode change:
@@ -125,23 +127,24 @@ def mav_result(verdict: Verdict) -> int:
     return mavlink.MAV_RESULT_DENIED
 
 
-def takeoff_altitude(param7: float, home_amsl: float) -> float | None:
+def takeoff_altitude(param7: float, reference_amsl: float) -> float | None:
     """NAV_TAKEOFF's param7 as metres to climb above the takeoff point (None: the
-    vehicle's default, MIS_TAKEOFF_ALT), given home's altitude AMSL (m).
+    vehicle's default, MIS_TAKEOFF_ALT), given the takeoff point's altitude AMSL (m;
+    ``TelemetryReporter.takeoff_amsl``: where the vehicle stands, else home).
 
     * NaN: None (MAVSDK's ``action.takeoff()`` sends NaN and sets MIS_TAKEOFF_ALT with
       ``set_takeoff_altitude``; PX4 then climbs MIS_TAKEOFF_ALT above home);
-    * above ``home_amsl``: an AMSL altitude, as PX4 reads it (QGroundControl sends the
-      vehicle's AMSL altitude + the relative one): ``param7 - home_amsl``;
-    * at or below ``home_amsl``: already metres above the takeoff point (skyloop's
-      extension, so MAVProxy's ``takeoff 3`` and ``OffboardClient.takeoff(3)`` work; a
-      relative altitude above home's AMSL altitude would be read as AMSL).
+    * above ``reference_amsl``: an AMSL altitude, as PX4 reads it (QGroundControl sends
+      the vehicle's AMSL altitude + the relative one): ``param7 - reference_amsl``;
+    * at or below it: already metres above the takeoff point (skyloop's extension, so
+      MAVProxy's ``takeoff 3`` and ``OffboardClient.takeoff(3)`` work; a relative
+      altitude above the AMSL altitude would be read as AMSL).
 
     Nothing is checked here: the commander refuses what it cannot fly (``bad_altitude``).
     """
     if math.isnan(param7):
         return None
-    return param7 - home_amsl if param7 > home_amsl else param7
+    return param7 - reference_amsl if param7 > reference_amsl else param7
 
 
 def _byte_param(value: float) -> int | None:
@@ -321,7 +324,7 @@ class VehicleLink:
         return mavlink.MAV_RESULT_DENIED
 
     def _cmd_takeoff(self, msg: Any, now: float) -> int:
-        altitude = takeoff_altitude(float(msg.param7), self.reporter.home_amsl)
+        altitude = takeoff_altitude(float(msg.param7), self.reporter.takeoff_amsl)
         return mav_result(self.commander.takeoff(now, altitude))
 
     def _cmd_set_mode(self, msg: Any, now: float) -> int:

@@ -13,6 +13,7 @@ States (PX4 semantics; the bridge reports them as PX4 modes, see
 ``mavlink_bridge.modes``)::
 
     DISARMED --arm (landed)--> ARMED --takeoff--> TAKEOFF --at altitude--> HOLD
+    DISARMED --takeoff (landed)--> DISARMED, takeoff pending --arm--> TAKEOFF
     ARMED/TAKEOFF/HOLD/LAND --set_mode OFFBOARD (a recent setpoint)--> OFFBOARD
     OFFBOARD --no setpoint for setpoint_timeout--> HOLD (failsafe)
     HOLD (failsafe) --hold_before_land--> LAND --touchdown--> DISARMED
@@ -33,15 +34,21 @@ States (PX4 semantics; the bridge reports them as PX4 modes, see
   LAND (``math.inf``: hold forever). Setpoints coming back do not resume OFFBOARD by
   themselves (as PX4): the client asks for OFFBOARD again, which ends the failsafe.
 * Setpoints are always recorded (so one can be offered before the switch) but flown
-  only in OFFBOARD. Body-frame setpoints (forward, left, up) are rotated by the
-  vehicle's current yaw at each step, with the same arithmetic as
-  ``sitl.episode.body_to_world``; an absolute heading target becomes a yaw rate
-  ``yaw_gain * wrap(target - yaw)``, clamped to ``max_yaw_rate``.
+  only in OFFBOARD: body-frame ones rotated by the current yaw, heading targets turned
+  into yaw rates (:func:`sitl.commander_guidance.offboard_setpoint`).
 * Takeoff climbs to ``altitude`` (default ``takeoff_altitude``) above the height where
-  the takeoff was accepted (the next :meth:`step`'s if none came before), at
+  the climb starts (the next :meth:`step`'s if none came before), at
   ``min(takeoff_speed, takeoff_gain * error)``, then holds. LAND descends at
   ``land_speed``; touchdown is the land detector (height above ground and vertical
   speed under thresholds for ``land_detect_time``), then it disarms.
+* Takeoff while disarmed on the ground (PX4 switches to AUTO.TAKEOFF disarmed;
+  QGroundControl's Takeoff sends NAV_TAKEOFF first and arms once it is accepted) leaves
+  a *pending* takeoff: :attr:`~Commander.state` reports TAKEOFF, :attr:`~Commander.armed`
+  False; arming starts the climb at once (so ``disarm_preflight``, which applies to
+  ARMED only, never sees it). Disarm, HOLD or LAND requests (accepted no-ops otherwise),
+  a collision, :meth:`~Commander.place` and :meth:`~Commander.reset` cancel it; refused
+  requests and time do not (PX4 also waits for arming as long as it takes). Refused
+  disarmed as arming is: crashed (``invalid_state``), not landed (``not_landed``).
 * A collision disarms, is reported, and latches: arming is refused until :meth:`reset`.
 * Home is where the vehicle armed (or where :meth:`~Commander.place` put it). RTL climbs
   to ``flight_level`` above the ground (or keeps its height if already higher) at
@@ -62,6 +69,7 @@ from __future__ import annotations
 
 import math
 
+from sitl.commander_guidance import detect_landing, offboard_setpoint, rtl_setpoint
 from sitl.commander_types import (
     ACCEPTED,
     EPS,
@@ -102,6 +110,7 @@ class Commander:
         self._low_since: float | None = None  # land detector: conditions hold since
         self._takeoff_base: float | None = 0.0  # z where the climb started (None: next step's)
         self._takeoff_alt = 0.0  # m above the base
+        self._pending: float | None = None  # m, a takeoff accepted disarmed (flown at arming)
         self._home: tuple[float, float] | None = None  # (x, y) where it armed
         self._rehome = False  # take home from the next sample
         self._rtl_z = 0.0  # altitude of the return leg
@@ -114,6 +123,7 @@ class Commander:
         Setpoint history is kept, so an OFFBOARD stream carries on across the move."""
         self._crashed = False
         self._failsafe = None
+        self._pending = None
         self._low_since = None
         self._landed = not airborne
         self._rehome = True
@@ -130,7 +140,13 @@ class Commander:
 
     @property
     def state(self) -> State:
-        return self._state
+        """The mode: TAKEOFF while a takeoff waits for arming (disarmed), else the state."""
+        return State.TAKEOFF if self._pending is not None else self._state
+
+    @property
+    def pending_takeoff(self) -> float | None:
+        """Metres of a takeoff accepted disarmed, flown once armed (None: none)."""
+        return self._pending
 
     @property
     def armed(self) -> bool:
@@ -193,32 +209,43 @@ class Commander:
         self._armed_since = now
         self._rehome = True
         self._go(now, State.ARMED, "Armed")
+        if self._pending is not None:
+            altitude, self._pending = self._pending, None
+            self._climb(now, altitude)
         return ACCEPTED
 
     def disarm(self, now: float, force: bool = False) -> Verdict:
         """Disarm when landed (``force``: also in the air, as PX4's 21196)."""
         if not self.armed:
-            return ACCEPTED
+            return self._cancel_pending(now)
         if not (self._landed or force):
             return self._refuse(now, "in_air", "Disarming denied: in air")
         self._go(now, State.DISARMED, "Disarmed" + (" (forced)" if not self._landed else ""))
         return ACCEPTED
 
     def takeoff(self, now: float, altitude: float | None = None) -> Verdict:
-        """Climb ``altitude`` m (None or NaN: ``takeoff_altitude``) above here, then hold."""
+        """Climb ``altitude`` m (None or NaN: ``takeoff_altitude``) above here, then hold;
+        disarmed on the ground: once armed (a pending takeoff, see the module docstring)."""
         c = self.config
         if altitude is None or math.isnan(altitude):
             altitude = c.takeoff_altitude
         if not (math.isfinite(altitude) and 0.0 < altitude <= c.max_takeoff_altitude):
             return self._refuse(now, "bad_altitude", "Takeoff denied: bad altitude")
         if self._state == State.DISARMED:
-            return self._refuse(now, "not_armed", "Takeoff denied: not armed")
-        if self._state not in (State.ARMED, State.TAKEOFF):
+            if self._crashed:
+                return self._refuse(now, "invalid_state", "Takeoff denied: crashed")
+            if not self._landed:
+                return self._refuse(now, "not_landed", "Takeoff denied: not landed")
+            self._pending = altitude
+            self._events.append(CommanderEvent(
+                now, "mode", f"Takeoff pending: {altitude:.1f} m, arm to start", "info",
+                State.TAKEOFF))
+        elif self._state == State.ARMED:
+            self._climb(now, altitude)
+        elif self._state == State.TAKEOFF:
+            self._takeoff_alt = altitude  # a new target above the same base
+        else:
             return self._refuse(now, "invalid_state", "Takeoff denied: already flying")
-        if self._state == State.ARMED:
-            self._takeoff_base = self._sample.z if self._sample is not None else None
-            self._go(now, State.TAKEOFF, f"Takeoff to {altitude:.1f} m")
-        self._takeoff_alt = altitude  # TAKEOFF: a new target above the same base
         return ACCEPTED
 
     def land(self, now: float) -> Verdict:
@@ -255,8 +282,8 @@ class Commander:
     def set_mode(self, now: float, state: str) -> Verdict:
         """Switch to ``"OFFBOARD"``, ``"HOLD"``, ``"LAND"``, ``"TAKEOFF"`` or ``"RTL"``.
 
-        On the ground HOLD (and LAND while disarmed) is accepted and changes nothing:
-        that is what the vehicle already reports. OFFBOARD needs the vehicle armed and a
+        On the ground HOLD (and LAND while disarmed) is accepted and changes nothing but a
+        pending takeoff (cancelled). OFFBOARD needs the vehicle armed and a
         recent setpoint (:meth:`offboard_available`). Unknown names: ``unsupported_mode``.
         """
         if state == State.RTL:
@@ -264,10 +291,10 @@ class Commander:
         if state == State.TAKEOFF:
             return self.takeoff(now)
         if state == State.LAND:
-            return ACCEPTED if not self.armed else self.land(now)
+            return self._cancel_pending(now) if not self.armed else self.land(now)
         if state == State.HOLD:
             if self._state in (State.DISARMED, State.ARMED):
-                return ACCEPTED
+                return self._cancel_pending(now)
             self._failsafe = None
             if self._state != State.HOLD:
                 self._go(now, State.HOLD, "Hold")
@@ -287,6 +314,7 @@ class Commander:
         """A collision: disarm at once, report it, refuse arming until :meth:`reset`."""
         self._crashed = True
         self._failsafe = None
+        self._pending = None
         self._state = State.DISARMED
         self._events.append(CommanderEvent(now, "collision", "Collision: disarmed",
                                            "critical", self._state))
@@ -298,21 +326,29 @@ class Commander:
         self._sample = sample
         if self._rehome or self._home is None:
             self._home, self._rehome = (sample.x, sample.y), False
-        self._detect_landing(now, sample)
+        self._low_since, self._landed = detect_landing(c, self._low_since, self._landed, now,
+                                                       sample)
         s = self._state
         if s in (State.TAKEOFF, State.OFFBOARD, State.HOLD) and c.geofence > 0.0 and \
                 math.hypot(sample.x - self._home[0], sample.y - self._home[1]) > c.geofence:
             self.return_home(now, "geofence")
             s = self._state
         if s == State.RTL:
-            return self._rtl_setpoint(now, sample)
+            assert self._home is not None
+            self._rtl_phase, out = rtl_setpoint(c, self._rtl_phase, self._rtl_z, self._home,
+                                                sample, self._landed)
+            if out is None:  # descended at home and touched down
+                self._failsafe = None
+                self._go(now, State.DISARMED, "Landed home, disarmed")
+                return ZERO
+            return out
         if s == State.OFFBOARD:
             if now - self._last_setpoint_time > c.setpoint_timeout + EPS:
                 self._failsafe, self._failsafe_since = "setpoint_loss", now
                 self._go(now, State.HOLD, "Failsafe: setpoints lost, holding",
                          kind="failsafe", severity="critical")
                 return ZERO
-            return self._offboard_setpoint(sample.yaw)
+            return offboard_setpoint(self._sp, self._sp_body, self._sp_yaw, sample.yaw, c)
         if s == State.HOLD:
             if self._failsafe is not None and now - self._failsafe_since >= \
                     c.hold_before_land - EPS:
@@ -339,58 +375,25 @@ class Commander:
             self._go(now, State.DISARMED, "Disarmed: no takeoff")
         return ZERO
 
-    def _rtl_setpoint(self, now: float, sample: VehicleSample) -> Setpoint:
-        """Climb to the return altitude, fly home, descend; disarm on touchdown."""
-        c = self.config
-        hold_z = max(-c.rtl_climb_speed, min(c.rtl_climb_speed,
-                                              c.rtl_gain * (self._rtl_z - sample.z)))
-        if self._rtl_phase == "climb":
-            if self._rtl_z - sample.z > c.takeoff_tolerance:
-                return Setpoint(0.0, 0.0, hold_z, 0.0)
-            self._rtl_phase = "return"
-        if self._rtl_phase == "return":
-            assert self._home is not None
-            dx, dy = self._home[0] - sample.x, self._home[1] - sample.y
-            dist = math.hypot(dx, dy)
-            if dist > c.rtl_arrive_radius:
-                speed = min(c.rtl_speed, c.rtl_gain * dist)
-                return Setpoint(speed * dx / dist, speed * dy / dist, hold_z, 0.0)
-            self._rtl_phase = "descend"
-        if self._landed:
-            self._failsafe = None
-            self._go(now, State.DISARMED, "Landed home, disarmed")
-            return ZERO
-        return Setpoint(0.0, 0.0, -c.land_speed, 0.0)
-
-    def _offboard_setpoint(self, yaw: float) -> Setpoint:
-        vx, vy, vz, yaw_rate = self._sp
-        if self._sp_body:  # as sitl.episode.body_to_world, operation for operation
-            cy, sy = math.cos(yaw), math.sin(yaw)
-            vx, vy = cy * vx - sy * vy, sy * vx + cy * vy
-        if self._sp_yaw is not None:
-            c = self.config
-            err = (self._sp_yaw - yaw + math.pi) % (2.0 * math.pi) - math.pi
-            yaw_rate = max(-c.max_yaw_rate, min(c.max_yaw_rate, c.yaw_gain * err))
-        return Setpoint(vx, vy, vz, yaw_rate)
-
-    def _detect_landing(self, now: float, sample: VehicleSample) -> None:
-        c = self.config
-        low = sample.height_agl <= c.land_detect_height and abs(sample.vz) <= c.land_detect_speed
-        if not low:
-            self._low_since = None
-            self._landed = False
-            return
-        if self._low_since is None:
-            self._low_since = now
-        if now - self._low_since >= c.land_detect_time - EPS:
-            self._landed = True
-
     # ------------------------------------------------------------------ helpers
+    def _climb(self, now: float, altitude: float) -> None:
+        """ARMED -> TAKEOFF: climb ``altitude`` above the latest sample's height."""
+        self._takeoff_base = self._sample.z if self._sample is not None else None
+        self._takeoff_alt = altitude
+        self._go(now, State.TAKEOFF, f"Takeoff to {altitude:.1f} m")
+
+    def _cancel_pending(self, now: float) -> Verdict:
+        """Drop a pending takeoff (reported); accepted either way."""
+        if self._pending is not None:
+            self._pending = None
+            self._go(now, State.DISARMED, "Takeoff cancelled")
+        return ACCEPTED
+
     def _go(self, now: float, state: State, text: str, kind: str = "mode",
             severity: str = "info") -> None:
         self._state = state
         self._events.append(CommanderEvent(now, kind, text, severity, state))
 
     def _refuse(self, now: float, reason: str, text: str) -> Verdict:
-        self._events.append(CommanderEvent(now, "rejected", text, "warning", self._state))
+        self._events.append(CommanderEvent(now, "rejected", text, "warning", self.state))
         return Verdict(False, reason)

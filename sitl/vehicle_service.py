@@ -8,7 +8,8 @@ few milliseconds while it waits), so requests are answered within a step.
 * **Requests** (``skyloop/<vehicle>/command``, a Zenoh query, ``VehicleCommand`` ->
   ``CommandAck``): ``arm``, ``disarm`` (``param1 == 1``: forced), ``takeoff``
   (``param1``: metres above the takeoff point, NaN: the default, MIS_TAKEOFF_ALT; the
-  bridge has already turned NAV_TAKEOFF's AMSL altitude into this), ``land``, ``rtl`` and
+  bridge has already turned NAV_TAKEOFF's AMSL altitude into this; accepted disarmed on
+  the ground too, pending until arming: state TAKEOFF, armed false), ``land``, ``rtl`` and
   ``set_mode`` (``mode``: OFFBOARD, HOLD, LAND, TAKEOFF, RTL). The answer carries the
   commander's verdict and its state right after it. Unknown commands: ``unsupported``.
   OFFBOARD without a recent setpoint first gives :attr:`VehicleService.take_setpoints`

@@ -121,13 +121,109 @@ def test_preflight_auto_disarm() -> None:
 
 # ------------------------------------------------------------------ takeoff and land
 def test_takeoff_refusals() -> None:
-    c = Commander()
-    assert refused(c.takeoff(0.0), "not_armed")
-    c.arm(0.0)
-    for bad in (math.inf, -1.0, 0.0, 1000.0):
-        assert refused(c.takeoff(0.0, bad), "bad_altitude")
+    for armed in (False, True):  # the same checks disarmed (a pending takeoff) and armed
+        c = Commander()
+        if armed:
+            c.arm(0.0)
+        for bad in (math.inf, -math.inf, -1.0, 0.0, 1000.0):
+            assert refused(c.takeoff(0.0, bad), "bad_altitude")
+        assert c.state == (State.ARMED if armed else State.DISARMED)
+        assert c.pending_takeoff is None
     c, sim = airborne()
     assert refused(c.takeoff(sim.now, 3.0), "invalid_state")
+    assert c.disarm(sim.now, force=True).accepted  # disarmed, falling: not landed
+    assert refused(c.takeoff(sim.now, 3.0), "not_landed") and c.pending_takeoff is None
+    c = Commander()
+    c.collision(1.0)
+    assert refused(c.takeoff(1.0, 3.0), "invalid_state") and c.state == State.DISARMED
+    assert c.pop_events()[-1].text == "Takeoff denied: crashed"
+
+
+# ------------------------------------------------------------------ takeoff while disarmed
+def pending(altitude: float = 3.0) -> tuple[Commander, Sim]:
+    """QGroundControl's Takeoff, first half: NAV_TAKEOFF while disarmed on the ground."""
+    c = Commander()
+    sim = Sim(c)
+    sim.step()
+    assert c.takeoff(sim.now, altitude).accepted
+    return c, sim
+
+
+def test_takeoff_while_disarmed_is_pending_and_reported_as_takeoff() -> None:
+    c, sim = pending(3.0)
+    assert c.state == State.TAKEOFF and not c.armed and c.pending_takeoff == 3.0
+    ev = c.pop_events()
+    assert [(e.kind, e.text, e.state) for e in ev] == \
+        [("mode", "Takeoff pending: 3.0 m, arm to start", State.TAKEOFF)]
+    sim.step(600)  # a minute: no climb (motors off), no expiry (as PX4)
+    assert sim.z == 0.0 and c.state == State.TAKEOFF and c.pending_takeoff == 3.0
+    assert c.pop_events() == []
+    assert c.takeoff(sim.now, 4.0).accepted and c.pending_takeoff == 4.0  # a new altitude
+    assert c.takeoff(sim.now, math.nan).accepted and c.pending_takeoff == 2.5  # default
+
+
+def test_arming_with_a_pending_takeoff_climbs_to_its_altitude() -> None:
+    c, sim = pending(3.0)
+    assert c.arm(sim.now).accepted
+    assert c.state == State.TAKEOFF and c.armed and c.pending_takeoff is None
+    assert sim.step() == (0.0, 0.0, 1.5, 0.0)
+    for _ in range(300):  # well past disarm_preflight (10 s): it is flying, not idle
+        if c.state != State.TAKEOFF:
+            break
+        sim.step()
+    assert c.state == State.HOLD and 2.9 <= sim.z <= 3.0
+    assert [e.text for e in c.pop_events()] == ["Takeoff pending: 3.0 m, arm to start",
+                                                "Armed", "Takeoff to 3.0 m",
+                                                "Takeoff complete, holding"]
+
+
+@pytest.mark.parametrize("cancel", ["disarm", "HOLD", "LAND"])
+def test_disarm_hold_or_land_cancels_a_pending_takeoff(cancel: str) -> None:
+    c, sim = pending()
+    c.pop_events()
+    v = c.disarm(sim.now) if cancel == "disarm" else c.set_mode(sim.now, cancel)
+    assert v.accepted and c.state == State.DISARMED and c.pending_takeoff is None
+    assert [(e.text, e.state) for e in c.pop_events()] == \
+        [("Takeoff cancelled", State.DISARMED)]
+    assert c.arm(sim.now).accepted and c.state == State.ARMED  # arming: no climb
+    sim.step(5)
+    assert sim.z == 0.0 and c.state == State.ARMED
+
+
+def test_refused_requests_keep_a_pending_takeoff_and_collision_place_reset_clear_it() -> None:
+    c, sim = pending()
+    for mode in ("OFFBOARD", "RTL", "ACRO"):
+        assert not c.set_mode(sim.now, mode).accepted
+    assert not c.land(sim.now).accepted
+    assert c.state == State.TAKEOFF and c.pending_takeoff == 3.0
+    c.collision(sim.now)
+    assert c.state == State.DISARMED and c.pending_takeoff is None
+    for clear in (lambda: c.place(sim.now, airborne=False), lambda: c.reset(sim.now)):
+        c.reset(sim.now)
+        assert c.takeoff(sim.now, 3.0).accepted and c.state == State.TAKEOFF
+        clear()
+        assert c.state == State.DISARMED and c.pending_takeoff is None
+
+
+def test_auto_disarm_and_failsafes_unchanged_by_a_takeoff_that_was_pending() -> None:
+    """Preflight auto-disarm still applies to an armed idle vehicle (no pending takeoff
+    survives it), and a takeoff that was pending flies the same failsafes."""
+    c = Commander(CommanderConfig(disarm_preflight=2.0))
+    sim = Sim(c)
+    sim.step()
+    c.arm(sim.now)
+    sim.step(20)
+    assert c.state == State.DISARMED and c.pending_takeoff is None
+    assert c.takeoff(sim.now, 2.0).accepted and c.arm(sim.now).accepted
+    for _ in range(100):
+        if c.state != State.TAKEOFF:
+            break
+        sim.step()
+    assert c.state == State.HOLD and not c.landed
+    sim.stream(2)
+    assert c.set_mode(sim.now, "OFFBOARD").accepted
+    sim.step(11)  # setpoints lost for > 1 s
+    assert c.state == State.HOLD and c.failsafe_reason == "setpoint_loss"
 
 
 def test_takeoff_climbs_then_holds() -> None:
@@ -174,6 +270,7 @@ def test_modes_on_the_ground_are_accepted_noops_or_refused() -> None:
     c = Commander()
     assert c.set_mode(0.0, "HOLD").accepted and c.state == State.DISARMED
     assert c.set_mode(0.0, "LAND").accepted and c.state == State.DISARMED
+    assert c.disarm(0.0).accepted and c.pop_events() == []  # no-ops: nothing reported
     assert refused(c.set_mode(0.0, "OFFBOARD"), "not_armed")
     assert refused(c.set_mode(0.0, "RTL"), "not_armed")
     assert refused(c.set_mode(0.0, "ACRO"), "unsupported_mode")

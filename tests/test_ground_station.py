@@ -3,9 +3,11 @@
 The vehicle waits on the ground, disarmed (HEARTBEAT: STANDBY, not armed); the ground
 station reads the parameter list (PARAM_REQUEST_LIST: the table of ``bus/params.py``,
 ``--param`` values in it), reads one by name, sets one (echoed, persisted under
-``$XDG_STATE_HOME``), arms (ACK accepted), takes off (LOCAL_POSITION_NED: altitude rises under
-JSBSim), streams velocity setpoints and switches to OFFBOARD, then stops streaming: the
-sim's commander holds, lands and disarms, each step announced by STATUSTEXT.
+``$XDG_STATE_HOME``), takes off as QGroundControl's PX4 Takeoff does (NAV_TAKEOFF while
+disarmed with param7 = GLOBAL_POSITION_INT.alt + 3 m: accepted, the heartbeat shows
+AUTO.TAKEOFF disarmed; then ARM: LOCAL_POSITION_NED, altitude rises under JSBSim),
+streams velocity setpoints and switches to OFFBOARD, then stops streaming: the sim's
+commander holds, lands and disarms, each step announced by STATUSTEXT.
 COM_OF_LOSS_T and SKY_HOLD_LAND_T are shortened with ``--param``.
 """
 
@@ -28,7 +30,7 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from bus import params as table  # noqa: E402
-from mavlink_bridge.modes import encode_custom_mode  # noqa: E402
+from mavlink_bridge.modes import AUTO_TAKEOFF, encode_custom_mode  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 ARMED = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
@@ -43,6 +45,7 @@ class GroundStation:
                                                source_component=190, dialect="common")
         self.heartbeat = None
         self.z_ned: list[float] = []
+        self.amsl: list[float] = []  # GLOBAL_POSITION_INT.alt, m
         self.texts: list[str] = []
         self.acks: dict[int, int] = {}
         self.params: dict[str, tuple[float, int, int, int]] = {}  # value, type, index, count
@@ -60,6 +63,8 @@ class GroundStation:
                     self.heartbeat = msg
                 elif kind == "LOCAL_POSITION_NED":
                     self.z_ned.append(msg.z)
+                elif kind == "GLOBAL_POSITION_INT":
+                    self.amsl.append(msg.alt / 1000.0)
                 elif kind == "STATUSTEXT":
                     self.texts.append(msg.text)
                 elif kind == "COMMAND_ACK":
@@ -143,12 +148,17 @@ def test_ground_station_flies_the_vehicle(vehicle) -> None:
     assert gcs.params["SKY_FLIGHT_LVL"][0] == 5.0
     saved = json.loads(params_file.read_text())["params"]
     assert saved == {"SKY_FLIGHT_LVL": 5.0}  # only what a ground station set; --param: not kept
-    gcs.until(lambda: len(gcs.z_ned) > 5, 10.0, "LOCAL_POSITION_NED")
+    gcs.until(lambda: len(gcs.z_ned) > 5 and gcs.amsl, 10.0, "LOCAL_POSITION_NED")
     ground = gcs.z_ned[-1]
+    # QGroundControl's PX4 Takeoff: NAV_TAKEOFF disarmed (AMSL altitude), ARM once accepted.
+    nan = float("nan")
+    assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, -1, 0, 0, nan, nan, nan,
+                       gcs.amsl[-1] + 3.0) == mavlink.MAV_RESULT_ACCEPTED
+    gcs.until(lambda: gcs.heartbeat.custom_mode == AUTO_TAKEOFF.custom_mode, 5.0,
+              "AUTO.TAKEOFF heartbeat")
+    assert not gcs.armed and "Takeoff pending: 3.0 m, arm to start" in gcs.texts
     assert gcs.command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0) == mavlink.MAV_RESULT_ACCEPTED
     gcs.until(lambda: gcs.armed, 5.0, "armed heartbeat")
-    assert gcs.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, float("nan"), 0, 0,
-                       float("nan")) == mavlink.MAV_RESULT_ACCEPTED
     gcs.until(lambda: gcs.z_ned[-1] < ground - 2.0, 20.0, "altitude up 2 m")  # NED: up < 0
     gcs.streaming = True
     gcs.pump()  # the first setpoint goes out at once; PX4's rule: one recent setpoint
@@ -159,7 +169,7 @@ def test_ground_station_flies_the_vehicle(vehicle) -> None:
     gcs.streaming = False
     gcs.until(lambda: "Landed, disarmed" in gcs.texts, 30.0, "landed and disarmed")
     gcs.until(lambda: not gcs.armed, 5.0, "disarmed heartbeat")
-    for text in ("Armed", "Offboard", "Failsafe: setpoints lost, holding",
+    for text in ("Armed", "Takeoff to 3.0 m", "Offboard", "Failsafe: setpoints lost, holding",
                  "Failsafe: landing", "Landed, disarmed"):
         assert text in gcs.texts
     assert gcs.texts.index("Failsafe: setpoints lost, holding") < \
