@@ -7,6 +7,15 @@ the log stays readable by every tool) and appends it to the
 :class:`~bus.log.EpisodeLogWriter` under the ROS 2 topic ``/skyloop/<vehicle>/<topic>``.
 Stopping undeclares the subscriber, drains the queue, then finishes the file.
 
+Episode ends are held back briefly: an episode's messages come from several processes
+over separate Zenoh links, so the sim's END can overtake the last observation or
+setpoint of that episode (seen under load: the episode then lacked its last observation
+and was skipped when training from the log). The writer thread holds a vehicle's END
+until that vehicle's next START arrives or ``end_grace_s`` (0.25 s) passes; step topics
+(clock, odometry, truth, scan, observation, setpoint) arriving meanwhile are written
+before it, anything else (status, actor weights, ...) right after it, so between
+episodes as before; stopping writes what is held.
+
 ``main(argv)`` is the ``skyloop record`` command (``python -m bus.record`` works too).
 """
 
@@ -26,9 +35,10 @@ from typing import Any
 
 import zenoh
 
+from bus import keys
 from bus.keys import key_all, msgtype, parse_key
 from bus.log import EpisodeLogWriter
-from bus.messages import decode
+from bus.messages import END, START, decode
 from bus.node import RateLimitedLog
 from bus.session import SessionConfig, open_session
 
@@ -52,8 +62,9 @@ class Recorder:
 
     def __init__(self, session: zenoh.Session, writer: EpisodeLogWriter,
                  vehicle: str | None = None, queue_size: int = 512,
-                 validate: bool = True) -> None:
+                 validate: bool = True, end_grace_s: float = 0.25) -> None:
         self.writer = writer
+        self.end_grace_s = end_grace_s
         self.validate = validate
         self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._lock = threading.Lock()
@@ -87,33 +98,68 @@ class Recorder:
             self._drop_log(logging.ERROR, "recorder callback failed", exc_info=True)
 
     def _run(self) -> None:
+        # vehicle -> (held END, write-by time, messages that go after it)
+        pending: dict[str, tuple[Any, float, list[Any]]] = {}
+
+        def release(vehicle: str) -> None:
+            held, _, after = pending.pop(vehicle)
+            for it in (held, *after):
+                self._write(it)
+
         while True:
-            item = self._q.get()
-            if item is _STOP:
-                return
-            key_expr, data, t_ns = item
+            timeout = None if not pending else \
+                max(0.0, min(p[1] for p in pending.values()) - time.monotonic())
             try:
-                _, topic = parse_key(key_expr)
-                kind = msgtype(topic)
-            except (ValueError, KeyError):
-                self._count("unknown_topic")
-                self._bad_log(logging.WARNING, "not a skyloop topic, not recorded: %s",
-                              key_expr)
+                item = self._q.get(timeout=timeout)
+            except queue.Empty:
+                item = None
+            now = time.monotonic()
+            for vehicle in [v for v, p in pending.items() if p[1] <= now]:
+                release(vehicle)
+            if item is None:
                 continue
-            if self.validate:
-                try:
-                    decode(kind, data)
-                except Exception as err:  # noqa: BLE001 - counted, not written
-                    self._count("undecodable")
-                    self._bad_log(logging.WARNING, "%s: payload does not decode as %s: %s",
-                                  key_expr, kind, err)
+            if item is _STOP:
+                for vehicle in list(pending):
+                    release(vehicle)
+                return
+            event = _episode_event(item[0], item[1])
+            if event is not None:
+                vehicle, kind = event
+                if vehicle in pending:  # the next START: the held END goes first
+                    release(vehicle)
+                if kind == END:
+                    pending[vehicle] = (item, now + self.end_grace_s, [])
                     continue
+            else:
+                vehicle, step_topic = _step_topic(item[0])
+                if vehicle in pending and not step_topic:  # not the episode's: after END
+                    pending[vehicle][2].append(item)
+                    continue
+            self._write(item)
+
+    def _write(self, item: tuple[str, bytes, int]) -> None:
+        key_expr, data, t_ns = item
+        try:
+            _, topic = parse_key(key_expr)
+            kind = msgtype(topic)
+        except (ValueError, KeyError):
+            self._count("unknown_topic")
+            self._bad_log(logging.WARNING, "not a skyloop topic, not recorded: %s", key_expr)
+            return
+        if self.validate:
             try:
-                self.writer.write("/" + key_expr, kind, data, t_ns)
-                self._count("written")
-            except Exception:  # noqa: BLE001 - keep recording the rest
-                self._count("write_errors")
-                self._bad_log(logging.ERROR, "writing %s failed", key_expr, exc_info=True)
+                decode(kind, data)
+            except Exception as err:  # noqa: BLE001 - counted, not written
+                self._count("undecodable")
+                self._bad_log(logging.WARNING, "%s: payload does not decode as %s: %s",
+                              key_expr, kind, err)
+                return
+        try:
+            self.writer.write("/" + key_expr, kind, data, t_ns)
+            self._count("written")
+        except Exception:  # noqa: BLE001 - keep recording the rest
+            self._count("write_errors")
+            self._bad_log(logging.ERROR, "writing %s failed", key_expr, exc_info=True)
 
     def counters(self) -> dict[str, int]:
         """Snapshot of the counters."""
@@ -147,6 +193,32 @@ class Recorder:
             else:
                 self.writer.close()
         return self.counters()
+
+
+def _episode_event(key_expr: str, data: bytes) -> tuple[str, int] | None:
+    """(vehicle, START/END) if this is an episode event that decodes, else None."""
+    try:
+        vehicle, topic = parse_key(key_expr)
+        if topic != keys.EPISODE:
+            return None
+        event = int(decode(msgtype(topic), data).event)
+    except Exception:  # noqa: BLE001 - not an event; _write counts what is wrong
+        return None
+    return (vehicle, event) if event in (START, END) else None
+
+
+_STEP_TOPICS = frozenset((keys.CLOCK, keys.ODOM, keys.TRUTH, keys.LIDAR_POINTS,
+                          keys.OBSERVATION, keys.CMD_VEL))
+
+
+def _step_topic(key_expr: str) -> tuple[str | None, bool]:
+    """(vehicle, whether the topic carries an episode's steps) of a key, (None, False)
+    for what does not parse."""
+    try:
+        vehicle, topic = parse_key(key_expr)
+    except (ValueError, KeyError):
+        return None, False
+    return vehicle, topic in _STEP_TOPICS
 
 
 def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,

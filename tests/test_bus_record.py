@@ -101,6 +101,42 @@ def test_recorder_writes_every_topic(tmp_path):
     assert counts == {keys.ros_topic("uav1", t): n for t, n in run.sent.items()}
 
 
+def test_a_late_step_message_stays_in_its_episode(tmp_path):
+    """Two processes: the sim's END overtakes perception's last observation (separate
+    Zenoh links). The recorder holds the END until the next START, so the observation is
+    in its episode, and what is not a step topic (actor weights) stays between episodes;
+    the last episode's END is written within the grace time."""
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    sim, perception = Bus.open(cfg), Bus.open(cfg)
+    rec_session = open_session(cfg)
+    writer = EpisodeLogWriter(tmp_path, "late")
+    recorder = Recorder(rec_session, writer, end_grace_s=2.0)
+    try:
+        run = FakeRun(sim)
+        obs = perception.publisher(keys.OBSERVATION, "uav1")
+        run.wait_matched()
+        assert obs.wait_matched(10.0)
+        run.episode(0, steps=3)  # its END is now on the wire ...
+        wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()),
+                 what="episode 0 received")
+        obs.put(m.observation(np.zeros((3, 35), np.float32), 0.3, 0, 3))  # ... then this
+        run.actor(1)
+        run.episode(1, steps=2)
+        total = sum(run.sent.values()) + 1
+        assert recorder.wait_written(total - 1, timeout=20.0)  # all but the held last END
+        assert recorder.counters()["episodes_ended"] == 1
+        assert recorder.wait_written(total, timeout=20.0)  # the grace time let it go
+    finally:
+        recorder.stop()
+        sim.close()
+        perception.close()
+        rec_session.close()
+    eps, rep = read_episodes(writer.dir)
+    assert rep.clean and rep.outside_episodes == 1  # the actor weights
+    assert [len(e.topic(keys.OBSERVATION)) for e in eps] == [4, 2]
+    assert [int(x.decode().step) for x in eps[0].topic(keys.OBSERVATION)] == [0, 1, 2, 3]
+
+
 class GatedWriter(EpisodeLogWriter):
     """A writer stuck until the gate opens: the recorder's queue must overflow."""
 
