@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import signal
+import subprocess
 import time
 
 from skyloop.launcher import free_port
 
-__all__ = ["free_port", "wait_for"]
+__all__ = ["free_port", "interrupt", "wait_for"]
 
 
 def wait_for(cond, timeout: float = 10.0, what: str = "condition", poll: float = 0.005) -> None:
@@ -16,3 +18,15 @@ def wait_for(cond, timeout: float = 10.0, what: str = "condition", poll: float =
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(poll)
+
+
+def interrupt(proc: subprocess.Popen, timeout: float = 15.0) -> str:
+    """Ctrl-C ``proc`` (e.g. ``skyloop up``, which stops its children), wait up to
+    ``timeout`` s, then kill it; return what it printed (stdout piped as text)."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        out = proc.communicate(timeout=timeout)[0]
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out = proc.communicate()[0]
+    return out or ""

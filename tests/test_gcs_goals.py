@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -22,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from loopback import free_port
+from loopback import free_port, interrupt
 
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
@@ -142,12 +141,7 @@ def stack(tmp_path: Path):
     try:
         yield gcs, goals
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            out = proc.communicate(timeout=20)[0]
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            out = proc.communicate()[0]
+        out = interrupt(proc, timeout=20)
         print(out)
         bus.close()
         gcs.conn.close()

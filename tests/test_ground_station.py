@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -23,7 +22,7 @@ import time
 from pathlib import Path
 
 import pytest
-from loopback import free_port
+from loopback import free_port, interrupt
 
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
@@ -114,12 +113,7 @@ def vehicle(tmp_path: Path):
     try:
         yield gcs, tmp_path / "skyloop" / "params-sys1.json"
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            out = proc.communicate(timeout=15)[0]
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            out = proc.communicate()[0]
+        out = interrupt(proc)
         assert "policy" not in [line.split()[1] for line in out.splitlines()
                                 if line.startswith("started ")]
         gcs.conn.close()

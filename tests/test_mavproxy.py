@@ -23,7 +23,6 @@ from __future__ import annotations
 import math
 import os
 import queue
-import signal
 import socket
 import subprocess
 import sys
@@ -33,7 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from loopback import free_port
+from loopback import free_port, interrupt
 
 pytest.importorskip("MAVProxy", reason="MAVProxy not installed (pip install -e '.[test]')")
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
@@ -149,12 +148,7 @@ def rig(tmp_path: Path):
         yield mavproxy, listener
     finally:
         log = mavproxy.close()
-        vehicle.send_signal(signal.SIGINT)
-        try:
-            vehicle.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            vehicle.kill()
-            vehicle.communicate()
+        interrupt(vehicle)
         listener.conn.close()
         print(log)  # shown when the test fails
 

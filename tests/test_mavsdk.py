@@ -14,7 +14,6 @@ from __future__ import annotations
 import asyncio
 import math
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -23,7 +22,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import pytest
-from loopback import free_port
+from loopback import free_port, interrupt
 
 pytest.importorskip("mavsdk.asyncio", reason="mavsdk not installed (pip install -e '.[test]')")
 from mavsdk.asyncio import Autopilot, ComponentType, Configuration, Mavsdk  # noqa: E402
@@ -53,12 +52,7 @@ def api_port(tmp_path: Path):
     try:
         yield udp[0]
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.communicate(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
+        interrupt(proc)
 
 
 async def until(cond: Callable[[], Awaitable[bool]], timeout: float, what: str) -> None:
