@@ -71,6 +71,45 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_experiment_run(args: argparse.Namespace) -> int:
+    from skyloop.experiment.grid import load_grid
+    from skyloop.experiment.run import run_grid
+
+    grid = load_grid(args.grid)  # every error before anything starts
+    status = run_grid(grid, Path(args.out), max_concurrent=args.max_concurrent,
+                      address=args.address, cpus_per_trial=args.cpus_per_trial)
+    return 0 if all(s == "finished" for s in status.values()) else 1
+
+
+def _cmd_experiment_report(args: argparse.Namespace) -> int:
+    from skyloop.experiment.report import write_report
+
+    paths = write_report(Path(args.dir), eval_episodes=args.eval_episodes)
+    for path in paths:
+        print(f"wrote {path}")
+    return 0
+
+
+def _add_experiment(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("experiment", help="grids of training runs on Ray Tune, and reports")
+    esub = p.add_subparsers(dest="experiment_command", required=True)
+    r = esub.add_parser("run", help="run or continue a grid (finished trials are skipped)")
+    r.add_argument("grid", help="grid file (TOML), e.g. experiments/paper_static.toml")
+    r.add_argument("--out", required=True, help="grid directory: one run directory per trial")
+    r.add_argument("--max-concurrent", type=int, metavar="N",
+                   help="at most N trials at once (default: the cluster's CPUs per trial)")
+    r.add_argument("--address", help="an existing Ray cluster (default: $RAY_ADDRESS, or "
+                   "an embedded Ray on this machine)")
+    r.add_argument("--cpus-per-trial", type=int, default=1, metavar="N",
+                   help="CPUs Ray reserves for each trial (default: 1)")
+    r.set_defaults(func=_cmd_experiment_run)
+    r = esub.add_parser("report", help="REPORT.md, summary.json and figures of a grid")
+    r.add_argument("dir", help="grid directory written by 'skyloop experiment run'")
+    r.add_argument("--eval-episodes", type=int, default=0, metavar="N",
+                   help="evaluate each final actor on N held-out episodes (default: 0)")
+    r.set_defaults(func=_cmd_experiment_report)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="skyloop", description="Software-in-the-loop drone stack (see README.md)."
@@ -131,6 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/curves.png")
     p.set_defaults(func=_cmd_plot)
 
+    _add_experiment(sub)
     from skyloop.stack_cli import add_stack_commands
 
     add_stack_commands(sub)
