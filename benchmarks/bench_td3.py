@@ -29,15 +29,22 @@ STATE_DIM, ACTION_DIM, MAX_ACTION, BATCH, HIDDEN = 105, 4, 2.0, 100, (400, 300)
 
 
 def _fill_ours(n: int, seed: int = 0) -> ReplayBuffer:
+    """``n`` transitions of 300-step episodes of random observations, as frame stacks."""
     rng = np.random.default_rng(seed)
     buf = ReplayBuffer(capacity=n, state_shape=(3, 35), action_dim=ACTION_DIM, seed=seed)
-    states = rng.normal(size=(n + 1, STATE_DIM)).astype(np.float32)
+    obs = rng.normal(size=(n + 1, 35)).astype(np.float32)
     actions = rng.uniform(-MAX_ACTION, MAX_ACTION, (n, ACTION_DIM)).astype(np.float32)
     rewards = rng.normal(size=n).astype(np.float32)
+    state = np.zeros((3, 35), np.float32)
+    state[-1] = obs[0]
     for i in range(n):
-        buf.add(states[i], actions[i], float(rewards[i]), states[i + 1], i % 300 == 299)
+        next_state = np.concatenate([state[1:], obs[i + 1 : i + 2]])
+        buf.add(state, actions[i], float(rewards[i]), next_state, i % 300 == 299)
+        state = next_state
         if i % 300 == 299:
             buf.end_episode()
+            state = np.zeros((3, 35), np.float32)
+            state[-1] = obs[i + 1]
     return buf
 
 

@@ -11,9 +11,10 @@ ALGOS: dict[str, tuple[type[TD3], type[TD3Config]]] = {
 }
 
 
-def make_agent(name: str, seed: int = 0, **overrides) -> TD3:
-    """A fresh agent with the paper's hyperparameters (abr-method.md) and ``seed``."""
+def make_agent(name: str, seed: int = 0, device: str = "cpu", **overrides) -> TD3:
+    """A fresh agent with the paper's hyperparameters (abr-method.md) and ``seed``, its
+    networks on ``device`` ("cpu", "cuda", "cuda:1", ...)."""
     if name not in ALGOS:
         raise ValueError(f"unknown algorithm {name!r}; choose from {sorted(ALGOS)}")
     cls, config_cls = ALGOS[name]
-    return cls(config_cls(seed=seed, **overrides))
+    return cls(config_cls(seed=seed, **overrides), device=device)

@@ -41,8 +41,9 @@ class DDPG(TD3):
     num_q = 1
     config_class = DDPGConfig
 
-    def __init__(self, config: DDPGConfig | None = None) -> None:
-        super().__init__(config or DDPGConfig())
+    def __init__(self, config: DDPGConfig | None = None,
+                 device: str | torch.device = "cpu") -> None:
+        super().__init__(config or DDPGConfig(), device)
 
     def target(self, next_state: torch.Tensor, reward: torch.Tensor,
                done: torch.Tensor) -> torch.Tensor:

@@ -102,8 +102,10 @@ class TD3:
     num_q = 2
     config_class: type[TD3Config] = TD3Config
 
-    def __init__(self, config: TD3Config | None = None) -> None:
+    def __init__(self, config: TD3Config | None = None,
+                 device: str | torch.device = "cpu") -> None:
         self.config = c = config or TD3Config()
+        self.device = torch.device(device)
         with torch.random.fork_rng(devices=[]):  # seeded init, global RNG untouched
             torch.manual_seed(c.seed)
             self.actor = Actor(c.state_dim, c.action_dim, c.hidden, c.max_action)
@@ -115,6 +117,8 @@ class TD3:
         self.critic_target.load_state_dict(self.critic.state_dict())
         for p in (*self.actor_target.parameters(), *self.critic_target.parameters()):
             p.requires_grad_(False)
+        for net in (self.actor, self.critic, self.actor_target, self.critic_target):
+            net.to(self.device)  # initialised on the CPU: the same weights on any device
         self.actor_opt = make_adam(self.actor.parameters(), c.lr)
         self.critic_opt = make_adam(self.critic.parameters(), c.lr)
         self._pairs = [
@@ -140,7 +144,7 @@ class TD3:
         c = self.config
         x = torch.as_tensor(np.asarray(state, dtype=np.float32))
         single = x.numel() == c.state_dim
-        a = self.actor(x.reshape(-1, c.state_dim)).numpy()
+        a = self.actor(x.reshape(-1, c.state_dim).to(self.device)).cpu().numpy()
         if noise:
             a = a + (rng or self.rng).normal(0.0, c.exploration_noise, size=a.shape)
             a = np.clip(a, -c.max_action, c.max_action)
@@ -160,7 +164,8 @@ class TD3:
         c = self.config
         with torch.no_grad():
             mu_next = self.actor_target(next_state)
-            eps = torch.randn(mu_next.shape, generator=self.noise_gen) * c.policy_noise
+            eps = torch.randn(mu_next.shape, generator=self.noise_gen).to(self.device)
+            eps = eps * c.policy_noise
             eps = eps.clamp(-c.noise_clip, c.noise_clip)  # clip(eps, -c, c)
             next_action = (mu_next + eps).clamp(-c.max_action, c.max_action)  # eq. 2.11
             q_next = self.critic_target(next_state, next_action)  # (2, B, 1)
@@ -186,6 +191,8 @@ class TD3:
         """
         c = self.config
         self.updates += 1
+        if self.device.type != "cpu":
+            batch = Batch(*(t.to(self.device, non_blocking=True) for t in batch))
         y = self.target(batch.next_state, batch.reward, batch.done)
 
         critic_loss, q = self._critic_loss(batch.state, batch.action, y)

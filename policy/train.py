@@ -6,18 +6,32 @@ The task is a skyloop scenario (``policy.env.UavNavEnv``) or, with ``env``, any 
 env id (``policy.gym_task.GymTask``: frames stacked the same way, an episodic return of
 ``goal_return`` or more counts as reaching the goal).
 
-Per step: act (uniform random for the first ``start_steps``, then the actor plus
+Per env step: act (uniform random for the first ``start_steps``, then the actor plus
 Gaussian exploration noise), step the env, store the transition with its *base* reward
-(terminal only on collision/goal, never on the 300-step truncation), update the agent
-once. Per episode end: the goal-reward variant rewrites the episode's rewards in the
-replay buffer (TR/NGR/EGR/ABR), a CSV row is written, TensorBoard scalars are logged.
+(terminal only on collision/goal, never on the 300-step truncation), and one agent
+update per env step. Per episode end: the goal-reward variant rewrites the episode's
+rewards in the replay buffer (TR/NGR/EGR/ABR), a CSV row is written, TensorBoard scalars
+are logged. ``envs`` envs are stepped in turn (``policy.collector.Collector``), each its
+own stream of episodes in the replay buffer.
 
-Reproducible and resumable: episode ``i`` is reset with seed ``seed * 1_000_003 + i``;
-all other randomness comes from generators whose states are checkpointed together with
-the networks, optimizers, replay buffer, goal-reward state and counters. A checkpoint is
-written atomically every ``checkpoint_every`` episodes and at the end; ``resume=True``
-continues from it, truncating the CSV to the checkpointed episode count. The CSV holds
-no wall-clock columns, so the same seed gives the same CSV on the same machine.
+Two loops over the same bookkeeping:
+
+- ``sync``: the envs and the learner take turns in this process. Reproducible: episode
+  ``i`` (the i-th reset) has seed ``seed * 1_000_003 + i``; all other randomness comes
+  from generators checkpointed with the networks, optimizers, replay buffer, goal-reward
+  state and counters, so the same seed gives the same CSV on the same machine, and with
+  one env a resumed run continues exactly as an uninterrupted one.
+- parallel (the default): the envs run in a collector process while this process
+  updates (``policy.collector``); updates per env step stay 1 on average, the collector
+  at most ``max_lead`` steps ahead. The same episode seeds, network initialisation and
+  random-action phase as ``sync``; *not* reproducible: which actor version chose each
+  action after the random phase depends on timing, and so does everything after it.
+
+Resumable in both: a checkpoint is written atomically every ``checkpoint_every``
+episodes and at the end; ``resume=True`` continues from it, truncating the CSV to the
+checkpointed episode count. Episodes in progress at a checkpoint (other envs' streams,
+or in the parallel mode the collector's) are cut on resume: their transitions stay in
+the buffer with base rewards, and new episodes start with the next seeds.
 """
 
 from __future__ import annotations
@@ -29,6 +43,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +51,8 @@ import torch
 from tqdm import tqdm
 
 from policy.agents import ALGOS, make_agent
-from policy.env import UavNavEnv
+from policy.collector import Collector, CollectorSpec, SharedActor, Transition, collector_main
+from policy.env import FRAMES, MAX_ACTION, OBS_DIM, UavNavEnv
 from policy.plots import CSV_NAME, plot_runs
 from policy.replay import ReplayBuffer
 from policy.rewards import GOAL_REWARDS, RewardConfig, make_goal_reward
@@ -66,7 +82,11 @@ class TrainConfig:
     buffer_size: int = 1_000_000
     checkpoint_every: int = 100
     lidar_max_range: float = 4.5
-    threads: int = 1
+    threads: int = 1  # torch threads of the learner
+    sync: bool = False  # the reproducible single-process loop instead of the parallel one
+    envs: int = 1  # envs stepped in turn (one collector)
+    max_lead: int = 8  # parallel: env steps the collector may run ahead of the updates
+    device: str = "cpu"  # the learner's networks: "cpu", "cuda", "cuda:1", ...
     env: str = ""  # a Gymnasium env id instead of a scenario (the paper's BipedalWalker)
     goal_return: float = 0.0  # with env: the episodic return that counts as the goal
     progress: bool = True  # the tqdm bar (off under Ray Tune, which reports for itself)
@@ -81,6 +101,14 @@ class TrainConfig:
             raise ValueError(f"unknown reward {self.reward!r}; choose from {sorted(GOAL_REWARDS)}")
         if self.episodes < 1:
             raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
+        if self.envs < 1:
+            raise ValueError(f"--envs must be >= 1, got {self.envs}")
+        if self.max_lead < 1:
+            raise ValueError(f"--max-lead must be >= 1, got {self.max_lead}")
+        try:
+            torch.empty(0, device=self.device)
+        except (RuntimeError, AssertionError) as exc:
+            raise ValueError(f"--device {self.device!r} is not usable here ({exc})") from exc
         if self.env:
             from policy.gym_task import check_env_id
 
@@ -98,6 +126,16 @@ def episode_seed(seed: int, episode: int) -> int:
     return seed * 1_000_003 + episode
 
 
+def make_envs(config: dict, n: int) -> list:
+    """``n`` envs of the task (``asdict(TrainConfig)``); picklable for the collector."""
+    if config["env"]:
+        from policy.gym_task import GymTask
+
+        return [GymTask(config["env"], config["goal_return"]) for _ in range(n)]
+    return [UavNavEnv(scenario=config["scenario"], lidar_max_range=config["lidar_max_range"])
+            for _ in range(n)]
+
+
 class Trainer:
     """Owns everything a checkpoint must hold; ``run`` is the loop of Algorithm 3.1."""
 
@@ -106,29 +144,30 @@ class Trainer:
         self.config, self.out = config, Path(out)
         torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
+        probe = make_envs(asdict(config), 1)[0]  # the sync loop steps it (its env 0)
         if config.env:
-            from policy.gym_task import GymTask
-
-            self.env = GymTask(config.env, config.goal_return)
-            shape, action_dim = self.env.state_shape, self.env.action_dim
-            self.max_action = self.env.max_action
-            self.agent = make_agent(config.algo, seed=config.seed, state_dim=int(np.prod(shape)),
-                                    action_dim=action_dim, max_action=self.max_action)
+            shape, action_dim, self.max_action = probe.state_shape, probe.action_dim, \
+                probe.max_action
+            self.agent = make_agent(config.algo, seed=config.seed, device=config.device,
+                                    state_dim=int(np.prod(shape)), action_dim=action_dim,
+                                    max_action=self.max_action)
             abr = {"p_frames": shape[0], "p_attributes": shape[1]}
         else:
-            self.env = UavNavEnv(scenario=config.scenario,
-                                 lidar_max_range=config.lidar_max_range)
-            shape, action_dim, self.max_action = (3, 35), 4, 2.0
-            self.agent = make_agent(config.algo, seed=config.seed)
+            shape, action_dim, self.max_action = (FRAMES, OBS_DIM), 4, MAX_ACTION
+            self.agent = make_agent(config.algo, seed=config.seed, device=config.device)
             abr = {}
+        self._first_env = probe
         self.buffer = ReplayBuffer(config.buffer_size, shape, action_dim, seed=config.seed)
         self.goal_reward = make_goal_reward(config.reward, RewardConfig(), seed=config.seed,
                                             **(abr if config.reward == "abr" else {}))
         self.rng = np.random.default_rng(config.seed)
-        self.episode = 0
+        self.episode = 0  # episodes finished
+        self.started = 0  # episodes begun (their seeds used)
         self.total_steps = 0
         self.wall_s = 0.0  # training wall-clock over all sessions of this run
         self.outcomes: deque[str] = deque(maxlen=WINDOW)
+        self.losses: dict[str, float] = {}
+        self._open: dict[int, dict] = {}  # stream -> the episode in progress's sums
 
     # -- checkpoints ---------------------------------------------------------------
 
@@ -142,6 +181,7 @@ class Trainer:
             "rng": self.rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "episode": self.episode,
+            "started": self.started,
             "total_steps": self.total_steps,
             "wall_s": self.wall_s,
             "outcomes": list(self.outcomes),
@@ -163,63 +203,149 @@ class Trainer:
         saved = state["config"]
         for key in ("algo", "reward", "scenario", "env", "seed"):
             if saved.get(key, "") != getattr(self.config, key):
-                raise ValueError(f"{path}: checkpoint has {key}={saved[key]!r} but this run "
-                                 f"asks for {getattr(self.config, key)!r}")
+                raise ValueError(f"{path}: checkpoint has {key}={saved.get(key, '')!r} but "
+                                 f"this run asks for {getattr(self.config, key)!r}")
         self.agent.load_state_dict(state["agent"])
         self.buffer.load_state_dict(state["buffer"])
         self.goal_reward.load_state_dict(state["goal_reward"])
         self.rng.bit_generator.state = state["rng"]
         torch.set_rng_state(state["torch_rng"])
         self.episode, self.total_steps = state["episode"], state["total_steps"]
+        self.started = int(state.get("started", self.episode))
         self.wall_s = float(state.get("wall_s", 0.0))
         self.outcomes = deque(state["outcomes"], maxlen=WINDOW)
+        for stream in self.buffer.open_streams():  # cut the episodes in progress
+            self.buffer.end_episode(stream=stream)
 
-    # -- the loop ------------------------------------------------------------------
+    # -- bookkeeping shared by both loops --------------------------------------------
 
-    def act(self, state: np.ndarray) -> np.ndarray:
-        if self.total_steps < self.config.start_steps:
-            return self.rng.uniform(-self.max_action, self.max_action,
-                                    self.agent.config.action_dim).astype(np.float32)
-        return self.agent.act(state, noise=True, rng=self.rng)
+    def _act(self, states: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        return self.agent.act(states, noise=True, rng=rng)
 
-    def run_episode(self) -> dict:
-        state, _ = self.env.reset(seed=episode_seed(self.config.seed, self.episode))
-        total, steps, losses = 0.0, 0, {}
-        terms = dict.fromkeys(REWARD_TERMS, 0.0)
-        while True:
-            action = self.act(state)
-            next_state, reward, terminated, truncated, info = self.env.step(action)
-            self.buffer.add(state, action, reward, next_state, terminated)
-            self.total_steps += 1
-            steps += 1
-            total += reward
-            for key, value in info.get("reward_components", {}).items():
-                terms[key] += value
-            if self.total_steps >= self.config.start_steps:
-                losses = self.agent.update(self.buffer.sample(self.agent.config.batch_size))
-            state = next_state
-            if terminated or truncated:
-                break
-        reached = bool(info["goal_reached"])
-        episode = self.buffer.end_episode()
+    def _update(self) -> None:
+        self.losses = self.agent.update(self.buffer.sample(self.agent.config.batch_size))
+
+    def _store(self, tr: Transition) -> None:
+        """Add one transition to the replay buffer and to its episode's sums."""
+        self.buffer.add(tr.state, tr.action, tr.reward, tr.next_state, tr.terminated,
+                        stream=tr.stream)
+        self.total_steps += 1
+        sums = self._open.get(tr.stream)
+        if sums is None:
+            self.started += 1
+            sums = self._open[tr.stream] = {"steps": 0, "base": 0.0,
+                                            "terms": dict.fromkeys(REWARD_TERMS, 0.0)}
+        sums["steps"] += 1
+        sums["base"] += tr.reward
+        for key, value in tr.info.get("reward_components", {}).items():
+            sums["terms"][key] += value
+
+    def _end_episode(self, tr: Transition) -> dict:
+        """The goal reward rewrites the finished episode of ``tr.stream``; its CSV row."""
+        sums = self._open.pop(tr.stream)
+        reached = bool(tr.info["goal_reached"])
+        episode = self.buffer.end_episode(stream=tr.stream)
         rewards = self.goal_reward.on_episode_end(self.buffer, episode, reached)
         groups = getattr(self.goal_reward, "last_groups", []) if reached else []
-        outcome = "success" if reached else "collision" if info["collision"] else "timeout"
+        outcome = "success" if reached else "collision" if tr.info["collision"] else "timeout"
         self.outcomes.append(outcome)
         self.episode += 1
         return {
             "episode": self.episode, "return": round(float(np.sum(rewards)), 6),
-            "steps": steps, "outcome": outcome,
+            "steps": sums["steps"], "outcome": outcome,
             "success_rate_500": round(self.outcomes.count("success") / len(self.outcomes), 6),
             "collision_rate_500": round(self.outcomes.count("collision") / len(self.outcomes),
                                         6),
-            "total_steps": self.total_steps, "losses": losses,
-            "base_return": round(total, 6),
-            **{f"r_{k}": round(v, 6) for k, v in terms.items()},
+            "total_steps": self.total_steps, "losses": dict(self.losses),
+            "base_return": round(sums["base"], 6),
+            **{f"r_{k}": round(v, 6) for k, v in sums["terms"].items()},
             "abr_patterns": len(getattr(self.goal_reward, "returns", [])),
             "abr_new_patterns": sum(g.new_pattern for g in groups),
             "abr_groups": len(groups),
         }
+
+    def _collector(self, envs: list) -> Collector:
+        return Collector(envs, partial(episode_seed, self.config.seed), self.rng,
+                         self.max_action, self.agent.config.action_dim,
+                         self.config.start_steps, next_episode=self.started,
+                         steps=self.total_steps)
+
+    # -- the loops -----------------------------------------------------------------
+
+    def _loop_sync(self, emit: Callable[[dict], None]) -> None:
+        """Envs and learner in turn (Algorithm 3.1 as written): reproducible."""
+        envs = [self._first_env, *make_envs(asdict(self.config), self.config.envs - 1)]
+        collector = self._collector(envs)
+        while self.episode < self.config.episodes:
+            for tr in collector.round(self._act):
+                self._store(tr)
+                if self.total_steps >= self.config.start_steps:
+                    self._update()
+                if tr.terminated or tr.truncated:
+                    emit(self._end_episode(tr))
+                    if self.episode >= self.config.episodes:
+                        return
+
+    def _loop_parallel(self, emit: Callable[[dict], None]) -> None:
+        """Envs in a collector process, updates here (see the module docstring)."""
+        import torch.multiprocessing as tmp
+
+        c = self.config
+        ctx = tmp.get_context("spawn")
+        shared = SharedActor(self.agent.actor, ctx)
+        shared.publish(self.agent.actor)
+        shared.updates.value = self.agent.updates
+        a = self.agent.config
+        spec = CollectorSpec(
+            make_envs=partial(make_envs, asdict(c)), envs=c.envs,
+            actor_kwargs={"state_dim": a.state_dim, "action_dim": a.action_dim,
+                          "hidden": tuple(a.hidden), "max_action": a.max_action},
+            exploration_noise=float(a.exploration_noise), seed=c.seed,
+            max_action=self.max_action, action_dim=a.action_dim, start_steps=c.start_steps,
+            next_episode=self.started, steps=self.total_steps, max_lead=c.max_lead)
+        self._first_env.close()  # the collector makes its own
+        recv, send = ctx.Pipe(duplex=False)
+        stop = ctx.Event()
+        proc = ctx.Process(target=collector_main, daemon=True, name="skyloop-collector",
+                           args=(send, spec, shared, stop, partial(episode_seed, c.seed)))
+        proc.start()
+        send.close()
+        delay = a.policy_delay
+        try:
+            while self.episode < c.episodes:
+                due = self.total_steps - c.start_steps + 1
+                if self.agent.updates < due:
+                    self._update()
+                    shared.updates.value = self.agent.updates
+                    if self.agent.updates % delay == 0:
+                        shared.publish(self.agent.actor)
+                    if not recv.poll():
+                        continue
+                elif not recv.poll(1.0):
+                    if not proc.is_alive():
+                        raise RuntimeError(f"the collector process died (exit code "
+                                           f"{proc.exitcode})")
+                    continue
+                try:
+                    batch = recv.recv()
+                except EOFError:
+                    proc.join(timeout=5)
+                    raise RuntimeError(f"the collector process died (exit code "
+                                       f"{proc.exitcode})") from None
+                for tr in batch:
+                    self._store(tr)
+                    if tr.terminated or tr.truncated:
+                        emit(self._end_episode(tr))
+                        if self.episode >= c.episodes:
+                            break
+        finally:
+            stop.set()
+            recv.close()
+            proc.join(timeout=10)
+            if proc.is_alive():
+                proc.kill()
+                proc.join()
+        self._open.clear()
 
     def run(self, resume: bool = False,
             on_episode: Callable[[dict], None] | None = None) -> dict:
@@ -242,17 +368,18 @@ class Trainer:
 
         writer = SummaryWriter(str(self.out / "tb"), purge_step=self.episode)
         new_file = not csv_path.exists()
+        mode = "sync" if self.config.sync else "parallel"
         with csv_path.open("a", newline="") as f, tqdm(
             total=self.config.episodes, initial=self.episode, unit="ep", smoothing=0.05,
-            desc=f"{self.config.algo}+{self.config.reward} {self.config.task}",
+            desc=f"{self.config.algo}+{self.config.reward} {self.config.task} ({mode})",
             disable=not self.config.progress,
         ) as bar:
             rows = csv.DictWriter(f, CSV_FIELDS, extrasaction="ignore")
             if new_file:
                 rows.writeheader()
             t0, steps0, wall0 = time.perf_counter(), self.total_steps, self.wall_s
-            while self.episode < self.config.episodes:
-                row = self.run_episode()
+
+            def emit(row: dict) -> None:
                 rows.writerow(row)
                 for key in ("return", "steps", "success_rate_500", "collision_rate_500"):
                     writer.add_scalar(f"episode/{key}", row[key], self.episode)
@@ -269,13 +396,16 @@ class Trainer:
                 if self.episode % self.config.checkpoint_every == 0:
                     f.flush()
                     self.save()
+
+            (self._loop_sync if self.config.sync else self._loop_parallel)(emit)
         self.save()
         writer.close()
         png = plot_runs([self.out], self.out / "curve.png")
         summary = {"episodes": self.episode, "total_steps": self.total_steps,
                    "success_rate_500": self.outcomes.count("success") / max(len(self.outcomes),
                                                                             1),
-                   "wall_s": round(self.wall_s, 1), "curve": str(png), "checkpoint": str(ckpt)}
+                   "wall_s": round(self.wall_s, 1), "mode": mode, "curve": str(png),
+                   "checkpoint": str(ckpt)}
         (self.out / RESULT).write_text(json.dumps(summary, indent=2))
         return summary
 

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 MODULES = ["bench_flight", "bench_lidar", "bench_perception", "bench_env", "bench_td3",
-           "bench_stack", "bench_record", "bench_mavlink_fuzz"]
+           "bench_train", "bench_stack", "bench_record", "bench_mavlink_fuzz"]
 
 
 def machine() -> dict:

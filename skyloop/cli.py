@@ -48,7 +48,9 @@ def _cmd_train(args: argparse.Namespace) -> int:
     config = TrainConfig(algo=args.algo, reward=args.reward, scenario=args.scenario,
                          episodes=args.episodes, seed=args.seed,
                          checkpoint_every=args.checkpoint_every, start_steps=args.start_steps,
-                         threads=args.threads)
+                         threads=args.threads, sync=args.sync, envs=args.envs,
+                         max_lead=args.max_lead, device=args.device, env=args.env or "",
+                         goal_return=args.goal_return)
     summary = Trainer(config, Path(args.out)).run(resume=args.resume)
     print(json.dumps(summary, indent=2))
     return 0
@@ -100,8 +102,9 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
                    help="at most N trials at once (default: the cluster's CPUs per trial)")
     r.add_argument("--address", help="an existing Ray cluster (default: $RAY_ADDRESS, or "
                    "an embedded Ray on this machine)")
-    r.add_argument("--cpus-per-trial", type=int, default=1, metavar="N",
-                   help="CPUs Ray reserves for each trial (default: 1)")
+    r.add_argument("--cpus-per-trial", type=int, metavar="N",
+                   help="CPUs Ray reserves for each trial (default: 1 for sync trials, "
+                   "2 for parallel ones: learner and collector)")
     r.set_defaults(func=_cmd_experiment_run)
     r = esub.add_parser("report", help="REPORT.md, summary.json and figures of a grid")
     r.add_argument("dir", help="grid directory written by 'skyloop experiment run'")
@@ -148,7 +151,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--checkpoint-every", type=int, default=100, metavar="EPISODES")
     p.add_argument("--start-steps", type=int, default=10_000,
                    help="initial uniformly random steps (abr-method.md: 10,000)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads")
+    p.add_argument("--threads", type=int, default=1, help="the learner's torch threads")
+    p.add_argument("--sync", action="store_true",
+                   help="envs and learner take turns in one process: bit-reproducible with "
+                   "a seed (default: a collector process beside the learner, faster)")
+    p.add_argument("--envs", type=int, default=1, metavar="N",
+                   help="envs stepped in turn by the collector (default: 1)")
+    p.add_argument("--max-lead", type=int, default=8, metavar="STEPS",
+                   help="parallel mode: env steps the collector may run ahead of the "
+                   "updates (default: 8)")
+    p.add_argument("--device", default="cpu",
+                   help="the learner's device: cpu, cuda, cuda:1, ... (default: cpu)")
+    p.add_argument("--env", metavar="GYM_ID",
+                   help="a Gymnasium env id instead of --scenario, e.g. "
+                   "BipedalWalkerHardcore-v3")
+    p.add_argument("--goal-return", type=float, default=0.0,
+                   help="with --env: the episodic return that counts as reaching the goal")
     p.add_argument("--from-logs", nargs="+", metavar="LOG",
                    help="learn offline from episode logs (MCAP files or run directories)")
     p.add_argument("--updates", type=int, default=10_000, help="with --from-logs: TD3 updates")

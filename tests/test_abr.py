@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from perception.observation import FrameStacker
 from policy.abr import ABRConfig, AugmentativeBackwardReward, FeatureCNN, cosine_similarity
 from policy.replay import ReplayBuffer
 from policy.rewards import make_goal_reward
@@ -142,9 +143,12 @@ def test_state_dict_roundtrip_through_buffer():
     buf = ReplayBuffer(capacity=64)
     abr = make_goal_reward("abr")
     for _ in range(3):  # three goal episodes of 12 steps through the real CNN
+        stacker = FrameStacker(3, 35)  # the buffer takes frame stacks
+        state = stacker.push(rng.normal(size=35))
         for _t in range(12):
-            buf.add(rng.normal(size=(3, 35)), rng.normal(size=4), rng.normal(), rng.normal(
-                size=(3, 35)), False)
+            next_state = stacker.push(rng.normal(size=35))
+            buf.add(state, rng.normal(size=4), rng.normal(), next_state, False)
+            state = next_state
         abr.on_episode_end(buf, buf.end_episode(), reached_goal=True)
     assert len(abr.patterns) >= 1
     restored = AugmentativeBackwardReward(ABRConfig(seed=123))  # different CNN, overwritten

@@ -25,6 +25,7 @@ episodes = 4
 start_steps = 50
 buffer_size = 5000
 checkpoint_every = 1
+sync = true
 """
 
 

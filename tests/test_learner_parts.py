@@ -234,14 +234,18 @@ def test_learner_consumes_bus_episodes_publishes_and_resumes(bus, tmp_path):
 
 
 def test_critic_warmup_leaves_the_actor_as_it_was():
+    from perception.observation import FrameStacker
     from policy.replay import ReplayBuffer
 
     agent = TD3(TD3Config(seed=5))
     buf = ReplayBuffer(100, (3, 35), 4, seed=0)
     rng = np.random.default_rng(0)
+    stacker = FrameStacker(3, 35)  # the buffer takes frame stacks
+    state = stacker.push(rng.uniform(0, 1, 35))
     for _ in range(50):
-        buf.add(rng.uniform(0, 1, (3, 35)), rng.uniform(-2, 2, 4), rng.normal(),
-                rng.uniform(0, 1, (3, 35)), False)
+        next_state = stacker.push(rng.uniform(0, 1, 35))
+        buf.add(state, rng.uniform(-2, 2, 4), rng.normal(), next_state, False)
+        state = next_state
     def same(before, module) -> bool:
         return all(torch.equal(a, b) for a, b in zip(before, module.parameters(), strict=True))
 

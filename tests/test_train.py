@@ -14,7 +14,8 @@ import torch
 
 from policy.train import CHECKPOINT, TrainConfig, Trainer
 
-SMALL = dict(scenario="valley", seed=3, start_steps=60, buffer_size=5000, checkpoint_every=2)
+SMALL = dict(scenario="valley", seed=3, start_steps=60, buffer_size=5000, checkpoint_every=2,
+             sync=True)
 
 
 def _train(out: Path, episodes: int, resume: bool = False, **kw) -> str:
@@ -39,17 +40,29 @@ def test_same_seed_same_csv_and_resume_continues_exactly(tmp_path):
     assert (part / "curve.png").stat().st_size > 1000
 
 
-def test_killed_run_resumes_from_last_checkpoint(tmp_path):
+def _children(pid: int) -> list[int]:
+    return [int(c) for t in Path(f"/proc/{pid}/task").iterdir()
+            for c in (t / "children").read_text().split()]
+
+
+@pytest.mark.parametrize("mode", [["--sync"], ["--envs", "2"]], ids=["sync", "parallel"])
+def test_killed_run_resumes_from_last_checkpoint(tmp_path, mode):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "skyloop", "train", "--episodes", "40", "--seed", "5",
-           "--start-steps", "100000", "--checkpoint-every", "2", "--out", str(out)]
+           "--start-steps", "200", "--checkpoint-every", "2", "--out", str(out), *mode]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while not (out / CHECKPOINT).exists() and time.time() < deadline:
         time.sleep(0.2)
     time.sleep(0.5)
+    children = _children(proc.pid)  # the parallel mode's collector
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
+    for child in children:  # dies with the learner
+        deadline = time.time() + 10
+        while Path(f"/proc/{child}").exists() and "Z" not in _state(child):
+            assert time.time() < deadline, f"process {child} outlived the killed trainer"
+            time.sleep(0.1)
     state = torch.load(out / CHECKPOINT, weights_only=False)
     done = state["episode"]
     assert 2 <= done < 40
@@ -59,6 +72,37 @@ def test_killed_run_resumes_from_last_checkpoint(tmp_path):
     rows = (out / "episodes.csv").read_text().splitlines()
     episodes = [int(r.split(",")[0]) for r in rows[1:]]
     assert episodes == list(range(1, len(episodes) + 1))  # no gap, no duplicate
+    final = torch.load(out / CHECKPOINT, weights_only=False)
+    assert final["episode"] == len(episodes) and final["total_steps"] > state["total_steps"]
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return "Z"
+
+
+def test_parallel_mode_keeps_one_update_per_env_step(tmp_path):
+    """Collector process and learner: every episode is recorded once, in order, and the
+    learner's updates trail the env steps by at most the collector's bounded lead."""
+    cfg = TrainConfig(episodes=6, **{**SMALL, "sync": False, "envs": 2, "max_lead": 4})
+    Trainer(cfg, tmp_path).run()
+    rows = (tmp_path / "episodes.csv").read_text().splitlines()[1:]
+    assert [int(r.split(",")[0]) for r in rows] == list(range(1, 7))
+    state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
+    due = state["total_steps"] - cfg.start_steps + 1
+    assert 0 <= due - state["agent"]["updates"] <= cfg.max_lead + cfg.envs
+    assert sum(int(r.split(",")[2]) for r in rows) <= state["total_steps"]
+
+
+def test_sync_envs_keep_their_episodes_apart(tmp_path):
+    """Two envs stepped in turn: each episode's rewards are rewritten on its own range,
+    and the run is reproducible."""
+    a = _train(tmp_path / "a", 4, envs=2)
+    assert a == _train(tmp_path / "b", 4, envs=2)
+    steps = [int(r.split(",")[2]) for r in a.splitlines()[1:]]
+    assert len(steps) == 4 and all(1 <= s <= 300 for s in steps)
 
 
 def test_bad_input_is_a_clear_error_and_overwrites_nothing(tmp_path):
@@ -68,6 +112,10 @@ def test_bad_input_is_a_clear_error_and_overwrites_nothing(tmp_path):
         TrainConfig(reward="xyz").validate()
     with pytest.raises(ValueError, match="unknown scenario"):
         TrainConfig(scenario="moon").validate()
+    with pytest.raises(ValueError, match="--envs"):
+        TrainConfig(envs=0).validate()
+    with pytest.raises(ValueError, match="--device 'cuda:7'"):
+        TrainConfig(device="cuda:7").validate()
 
     out = tmp_path / "run"
     _train(out, 2)

@@ -131,7 +131,8 @@ def _episodes_done(out: Path, grid: Grid) -> dict[str, int]:
 
 
 def run_grid(grid: Grid, out: Path, max_concurrent: int | None = None,
-             address: str | None = None, cpus_per_trial: int = 1) -> dict[str, str]:
+             address: str | None = None, cpus_per_trial: int | None = None
+             ) -> dict[str, str]:
     """Run (or continue) every unfinished trial of ``grid`` under ``out``; returns the
     status of each trial afterwards."""
     out = Path(out).resolve()
@@ -160,6 +161,8 @@ def run_grid(grid: Grid, out: Path, max_concurrent: int | None = None,
     else:
         ray.init(address="local", num_cpus=os.cpu_count(), include_dashboard=False,
                  log_to_driver=False)
+    if cpus_per_trial is None:  # a parallel trial runs a learner and a collector
+        cpus_per_trial = 1 if all(t.config.sync for t in todo) else 2
     try:
         cpus = int(ray.cluster_resources().get("CPU", 1))
         concurrent = max(1, cpus // cpus_per_trial)

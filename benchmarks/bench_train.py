@@ -1,0 +1,165 @@
+"""Training throughput: env steps per second of whole TD3+ABR training runs on the valley.
+
+Three rows in the same run, the same env, network sizes (400-300), batch (100) and one
+gradient step per env step after the same warm-up:
+
+- ``train_env_steps_per_s``: ``skyloop train`` as it runs by default (a collector process
+  beside the learner, ``policy.collector``);
+- ``train_sync_env_steps_per_s``: ``skyloop train --sync`` (env and learner in turn);
+- ``sb3_train_env_steps_per_s``: Stable-Baselines3's ``TD3.learn()`` on the same env
+  (``train_freq=1, gradient_steps=1``).
+
+Each row times ``steps`` env steps after ``warmup`` steps (random actions, no updates,
+then a few hundred updated steps so every loop is at speed); the rows are interleaved
+``repeats`` times and the medians are reported, so load from other processes hits all
+alike. Also the collector's own rate (env steps/s of ``Collector.round`` with the actor
+acting, no learner) for 1 and 4 envs in one process: the ceiling of the parallel mode.
+
+Run: ``python -m benchmarks.bench_train [--quick] [--json out.json]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from policy.collector import Collector
+from policy.env import UavNavEnv
+from policy.train import TrainConfig, Trainer, episode_seed
+
+START, SETTLE = 1000, 300  # random steps before updates; updated steps before timing
+
+
+class _Done(Exception):
+    """Raised from the episode callback once enough steps are timed."""
+
+
+def _ours(sync: bool, steps: int, threads: int, seed: int) -> float:
+    """Env steps/s of a Trainer run between SETTLE and SETTLE + steps updated steps."""
+    marks: list[tuple[float, int]] = []
+
+    def on_episode(row: dict) -> None:
+        marks.append((time.perf_counter(), row["total_steps"]))
+        if row["total_steps"] >= START + SETTLE + steps:
+            raise _Done
+
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = TrainConfig(algo="td3", reward="abr", scenario="valley", episodes=10**6,
+                          seed=seed, start_steps=START, buffer_size=100_000,
+                          checkpoint_every=10**6, sync=sync, threads=threads,
+                          progress=False)
+        try:
+            Trainer(cfg, Path(tmp)).run(on_episode=on_episode)
+        except _Done:
+            pass
+    first = next(m for m in marks if m[1] >= START + SETTLE)
+    last = marks[-1]
+    return (last[1] - first[1]) / (last[0] - first[0])
+
+
+def _sb3(steps: int, seed: int) -> float | None:
+    try:
+        from stable_baselines3 import TD3 as SB3TD3
+        from stable_baselines3.common.callbacks import BaseCallback
+        from stable_baselines3.common.noise import NormalActionNoise
+    except ImportError:
+        return None
+    marks: dict[str, tuple[float, int]] = {}
+
+    class _Clock(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps == START + SETTLE:
+                marks["first"] = (time.perf_counter(), self.num_timesteps)
+            marks["last"] = (time.perf_counter(), self.num_timesteps)
+            return True
+
+    env = UavNavEnv(scenario="valley")
+    model = SB3TD3(
+        "MlpPolicy", env, policy_kwargs={"net_arch": [400, 300]}, batch_size=100,
+        buffer_size=100_000, learning_starts=START, learning_rate=1e-3, tau=0.005,
+        gamma=0.99, policy_delay=2, target_policy_noise=0.4, target_noise_clip=0.5,
+        train_freq=1, gradient_steps=1, action_noise=NormalActionNoise(np.zeros(4),
+                                                                        0.2 * np.ones(4)),
+        device="cpu", seed=seed, verbose=0)
+    model.learn(total_timesteps=START + SETTLE + steps, callback=_Clock())
+    (t0, s0), (t1, s1) = marks["first"], marks["last"]
+    return (s1 - s0) / (t1 - t0)
+
+
+def _collector(n_envs: int, steps: int) -> float:
+    """Env steps/s of the collector alone (actor + noise acting, no learner)."""
+    from policy.networks import Actor
+
+    actor = Actor().requires_grad_(False)
+
+    def act(states: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        with torch.no_grad():
+            a = actor(torch.as_tensor(states).reshape(len(states), -1)).numpy()
+        return np.clip(a + rng.normal(0, 0.2, a.shape), -2, 2).astype(np.float32)
+
+    envs = [UavNavEnv(scenario="valley") for _ in range(n_envs)]
+    c = Collector(envs, partial(episode_seed, 0), np.random.default_rng(0), 2.0, 4,
+                  start_steps=0)
+    for _ in range(max(1, 100 // n_envs)):
+        c.round(act)
+    t0, s0 = time.perf_counter(), c.steps
+    while c.steps - s0 < steps:
+        c.round(act)
+    return (c.steps - s0) / (time.perf_counter() - t0)
+
+
+def run(quick: bool = False, threads: int = 2) -> dict[str, Any]:
+    steps, repeats = (600, 1) if quick else (3000, 3)
+    rows: dict[str, list[float]] = {"parallel": [], "sync": [], "sb3": []}
+    torch.set_num_threads(1)
+    for r in range(repeats):
+        rows["parallel"].append(_ours(False, steps, threads, seed=r))
+        rows["sync"].append(_ours(True, steps, 1, seed=r))
+        sb3 = _sb3(steps, seed=r)
+        if sb3 is not None:
+            rows["sb3"].append(sb3)
+    med = {k: statistics.median(v) for k, v in rows.items() if v}
+    out: dict[str, Any] = {
+        "train_env_steps_per_s": med["parallel"],
+        "train_sync_env_steps_per_s": med["sync"],
+        "speedup_vs_sync": med["parallel"] / med["sync"],
+        "collector_env_steps_per_s": _collector(1, steps),
+        "collector_4envs_env_steps_per_s": _collector(4, steps),
+        "config": {"steps_timed": steps, "warmup_random": START, "warmup_updated": SETTLE,
+                   "repeats": repeats, "learner_threads": threads, "sync_threads": 1,
+                   "hidden": [400, 300], "batch": 100, "torch": torch.__version__},
+        "runs": rows, "peers": {},
+    }
+    if "sb3" in med:
+        import stable_baselines3
+
+        out["sb3_train_env_steps_per_s"] = med["sb3"]
+        out["speedup_vs_sb3"] = med["parallel"] / med["sb3"]
+        out["peers"]["stable_baselines3_td3_learn"] = {
+            "version": stable_baselines3.__version__, "env_steps_per_s": med["sb3"]}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--threads", type=int, default=2, help="the learner's torch threads")
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    out = run(args.quick, args.threads)
+    print(json.dumps(out, indent=2))
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
