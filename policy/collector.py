@@ -173,8 +173,9 @@ def collector_main(conn: Any, spec: CollectorSpec, shared: SharedActor, stop: An
 
     actor = Actor(**spec.actor_kwargs).requires_grad_(False)
     seen = shared.fetch(actor, -1)
-    # not the trainer's generator: the parallel mode is not reproducible (policy.train)
-    rng = np.random.default_rng([spec.seed, spec.steps, 7])
+    # a fresh run draws its random-action phase as --sync does (the trainer's generator,
+    # seeded with the run's seed); a resumed one from a generator of its own
+    rng = np.random.default_rng(spec.seed if spec.steps == 0 else [spec.seed, spec.steps])
     collector = Collector(spec.make_envs(spec.envs), episode_seed, rng, spec.max_action,
                           spec.action_dim, spec.start_steps, spec.next_episode, spec.steps)
 

@@ -84,7 +84,7 @@ def test_a_bad_grid_is_a_one_line_cli_error_before_anything_runs(tmp_path):
     path = write(tmp_path, GOOD.replace('"td3+abr"', '"td3+xyz"'))
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, "-m", "skyloop", "experiment", "run", str(path),
-                           "--out", str(out)], capture_output=True, text=True, timeout=60)
+                           "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "unknown reward 'xyz'" in proc.stderr
     assert not out.exists()
@@ -159,3 +159,24 @@ def test_a_grid_killed_mid_run_continues_to_the_same_csvs(tiny_grid, tmp_path):
     log = rerun.communicate(timeout=600)[0]
     assert rerun.returncode == 0, log
     assert _csvs(out) == _csvs(reference)  # --sync trials: as if never interrupted
+
+
+def test_the_report_of_a_tiny_grid_has_every_trial_and_method(tiny_grid):
+    import json
+
+    _, out = tiny_grid
+    proc = subprocess.run([sys.executable, "-m", "skyloop", "experiment", "report", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    trials = {t["trial"]: t for t in summary["trials"]}
+    assert sorted(trials) == sorted(_csvs(out))
+    for name, t in trials.items():
+        rows = (out / name / "episodes.csv").read_text().splitlines()[1:]
+        outcomes = [r.split(",")[3] for r in rows]
+        assert t["finished"] and t["episodes"] == len(rows) == 4
+        assert t["success_last500"] == pytest.approx(outcomes.count("success") / len(rows))
+        assert t["env_steps"] == int(rows[-1].split(",")[6])
+    assert {m["method"] for m in summary["methods"]} == {"td3+tr", "td3+abr"}
+    report = (out / "REPORT.md").read_text()
+    assert "valley-td3+abr-s1" in report and (out / "curves_valley.png").stat().st_size > 1000

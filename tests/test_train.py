@@ -96,6 +96,12 @@ def test_parallel_mode_keeps_one_update_per_env_step(tmp_path):
     assert sum(int(r.split(",")[2]) for r in rows) <= state["total_steps"]
 
 
+def test_parallel_mode_draws_the_random_phase_as_sync_does(tmp_path):
+    """Before the first update both loops take the same actions on the same episodes."""
+    kw = {"start_steps": 100_000}
+    assert _train(tmp_path / "p", 3, sync=False, **kw) == _train(tmp_path / "s", 3, **kw)
+
+
 def test_sync_envs_keep_their_episodes_apart(tmp_path):
     """Two envs stepped in turn: each episode's rewards are rewritten on its own range,
     and the run is reproducible."""
