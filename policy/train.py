@@ -397,9 +397,11 @@ class Trainer:
                     f.flush()
                     self.save()
 
-            (self._loop_sync if self.config.sync else self._loop_parallel)(emit)
+            try:
+                (self._loop_sync if self.config.sync else self._loop_parallel)(emit)
+            finally:
+                writer.close()  # also when a callback or the loop raises
         self.save()
-        writer.close()
         png = plot_runs([self.out], self.out / "curve.png")
         summary = {"episodes": self.episode, "total_steps": self.total_steps,
                    "success_rate_500": self.outcomes.count("success") / max(len(self.outcomes),
