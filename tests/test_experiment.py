@@ -19,7 +19,7 @@ name = "tiny"
 scenario = "valley"
 methods = ["td3+tr", "td3+abr"]
 seeds = [0, 1]
-episodes = 4
+episodes = 3
 
 [train]
 start_steps = 50
@@ -41,9 +41,9 @@ def test_a_grid_is_the_product_of_tasks_methods_and_seeds(tmp_path):
         "valley-td3+tr-s0", "valley-td3+abr-s0", "valley-td3+tr-s1", "valley-td3+abr-s1"]
     cfg = grid.trials[1].config
     assert (cfg.algo, cfg.reward, cfg.scenario, cfg.seed, cfg.episodes) == (
-        "td3", "abr", "valley", 0, 4)
+        "td3", "abr", "valley", 0, 3)
     assert (cfg.start_steps, cfg.buffer_size, cfg.checkpoint_every) == (50, 5000, 1)
-    assert grid.episodes == 16
+    assert grid.episodes == 12
     crossed = load_grid(write(tmp_path, GOOD.replace(
         'methods = ["td3+tr", "td3+abr"]', 'algos = ["td3", "ddpg"]\nrewards = ["ngr"]')))
     assert {t.method for t in crossed.trials} == {"td3+ngr", "ddpg+ngr"}
@@ -63,14 +63,14 @@ def test_a_grid_is_the_product_of_tasks_methods_and_seeds(tmp_path):
     ("seeds = [0, 1]", 'seeds = [0, "one"]', "seeds: 'one' is not"),
     ("seeds = [0, 1]", "seeds = [0, 1.5]", "seeds: 1.5 is not"),
     ("seeds = [0, 1]", "seeds = [1, 1]", "seeds: repeated"),
-    ("episodes = 4", "episodes = 0", "episodes: expected a positive integer"),
+    ("episodes = 3", "episodes = 0", "episodes: expected a positive integer"),
     ('scenario = "valley"', 'scenario = "moon"', "scenario:"),
     ('scenario = "valley"', 'env = "NoSuchEnv-v9"', "env: unknown Gymnasium env id"),
     ('scenario = "valley"', "", "scenarios: missing"),
     ("start_steps = 50", "start_step = 50", "train.start_step: unknown option"),
     ("start_steps = 50", 'start_steps = "fifty"', "train.start_steps: expected int"),
     ("start_steps = 50", "seed = 3", "train.seed: set it at the top level"),
-    ("episodes = 4", "episodes = 4\nepisodes = 5", "not valid TOML"),
+    ("episodes = 3", "episodes = 3\nepisodes = 5", "not valid TOML"),
 ])
 def test_a_bad_grid_names_the_file_and_the_field(tmp_path, old, new, field):
     assert old in GOOD
@@ -114,7 +114,7 @@ def _session_alive(sid: int) -> bool:
 
 @pytest.fixture(scope="module")
 def tiny_grid(tmp_path_factory) -> tuple[Path, Path]:
-    """The tiny grid, run once without interruption (2 methods x 2 seeds x 4 episodes)."""
+    """The tiny grid, run once without interruption (2 methods x 2 seeds x 3 episodes)."""
     tmp = tmp_path_factory.mktemp("grid")
     grid = write(tmp, GOOD)
     proc = _experiment(grid, tmp / "out")
@@ -128,7 +128,7 @@ def test_a_tiny_grid_runs_on_embedded_ray_and_a_rerun_skips_it(tiny_grid):
     csvs = _csvs(out)
     assert sorted(csvs) == sorted(t.name for t in load_grid(grid).trials)
     for name, data in csvs.items():
-        assert len(data.splitlines()) == 1 + 4, name
+        assert len(data.splitlines()) == 1 + 3, name
         assert (out / name / "result.json").is_file() and (out / name / "actor.pt").is_file()
     proc = subprocess.run([sys.executable, "-m", "skyloop", "experiment", "run", str(grid),
                            "--out", str(out)], capture_output=True, text=True, timeout=120)
@@ -174,7 +174,7 @@ def test_the_report_of_a_tiny_grid_has_every_trial_and_method(tiny_grid):
     for name, t in trials.items():
         rows = (out / name / "episodes.csv").read_text().splitlines()[1:]
         outcomes = [r.split(",")[3] for r in rows]
-        assert t["finished"] and t["episodes"] == len(rows) == 4
+        assert t["finished"] and t["episodes"] == len(rows) == 3
         assert t["success_last500"] == pytest.approx(outcomes.count("success") / len(rows))
         assert t["env_steps"] == int(rows[-1].split(",")[6])
     assert {m["method"] for m in summary["methods"]} == {"td3+tr", "td3+abr"}
