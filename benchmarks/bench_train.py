@@ -34,6 +34,7 @@ import torch
 
 from policy.collector import Collector
 from policy.env import UavNavEnv
+from policy.td3 import explore
 from policy.train import TrainConfig, Trainer, episode_seed
 
 START, SETTLE = 1000, 300  # random steps before updates; updated steps before timing
@@ -104,7 +105,7 @@ def _collector(n_envs: int, steps: int) -> float:
     def act(states: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         with torch.no_grad():
             a = actor(torch.as_tensor(states).reshape(len(states), -1)).numpy()
-        return np.clip(a + rng.normal(0, 0.2, a.shape), -2, 2).astype(np.float32)
+        return explore(a, rng, 0.2, 2.0)
 
     envs = [UavNavEnv(scenario="valley") for _ in range(n_envs)]
     c = Collector(envs, partial(episode_seed, 0), np.random.default_rng(0), 2.0, 4,

@@ -125,9 +125,9 @@ class SharedActor:
         """Copy newer weights into ``actor``; returns the version now held."""
         while True:
             v = self.version.value
-            if v == seen or v % 2:
-                if v == seen:
-                    return seen
+            if v == seen:
+                return seen
+            if v % 2:  # a write in progress
                 time.sleep(0)
                 continue
             with torch.no_grad():
@@ -170,6 +170,7 @@ def collector_main(conn: Any, spec: CollectorSpec, shared: SharedActor, stop: An
     parent = os.getppid()
     torch.set_num_threads(1)
     from policy.networks import Actor
+    from policy.td3 import explore
 
     actor = Actor(**spec.actor_kwargs).requires_grad_(False)
     seen = shared.fetch(actor, -1)
@@ -182,8 +183,7 @@ def collector_main(conn: Any, spec: CollectorSpec, shared: SharedActor, stop: An
     def act(states: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         with torch.no_grad():
             a = actor(torch.as_tensor(states, dtype=torch.float32).reshape(len(states), -1))
-        a = a.numpy() + rng.normal(0.0, spec.exploration_noise, size=a.shape)
-        return np.clip(a, -spec.max_action, spec.max_action).astype(np.float32)
+        return explore(a.numpy(), rng, spec.exploration_noise, spec.max_action)
 
     try:
         while not stop.is_set():

@@ -81,6 +81,14 @@ class TD3Config:
             self.exploration_noise = 0.1 * self.max_action
 
 
+def explore(a: np.ndarray, rng: np.random.Generator, sigma: float,
+            max_action: float) -> np.ndarray:
+    """Exploration (Algorithm 3.1): clip(mu(s) + eps, -max_action, max_action), eps ~
+    N(0, sigma), as float32; used by ``TD3.act`` and the collector process."""
+    a = a + rng.normal(0.0, sigma, size=a.shape)
+    return np.clip(a, -max_action, max_action).astype(np.float32)
+
+
 class FusedAdam(torch.optim.Adam):
     """``torch.optim.Adam(fused=True)`` with its per-step bookkeeping done once.
 
@@ -186,8 +194,7 @@ class TD3:
         single = x.numel() == c.state_dim
         a = self.actor(x.reshape(-1, c.state_dim).to(self.device)).cpu().numpy()
         if noise:
-            a = a + (rng or self.rng).normal(0.0, c.exploration_noise, size=a.shape)
-            a = np.clip(a, -c.max_action, c.max_action)
+            a = explore(a, rng or self.rng, c.exploration_noise, c.max_action)
         a = a.astype(np.float32, copy=False)
         return a[0] if single else a
 
