@@ -5,9 +5,11 @@ gradient step per env step after the same warm-up:
 
 - ``train_env_steps_per_s``: ``skyloop train`` as it runs by default (a collector process
   beside the learner, ``policy.collector``);
+- ``train_bf16_env_steps_per_s``: the same with ``--precision bf16`` (mixed precision);
 - ``train_sync_env_steps_per_s``: ``skyloop train --sync`` (env and learner in turn);
 - ``sb3_train_env_steps_per_s``: Stable-Baselines3's ``TD3.learn()`` on the same env
-  (``train_freq=1, gradient_steps=1``).
+  (``train_freq=1, gradient_steps=1``), with denormals flushed as in our trainer
+  (``policy.td3.flush_denormals``) so that both get the same machine setting.
 
 Each row times ``steps`` env steps after ``warmup`` steps (random actions, no updates,
 then a few hundred updated steps so every loop is at speed); the rows are interleaved
@@ -34,7 +36,7 @@ import torch
 
 from policy.collector import Collector
 from policy.env import UavNavEnv
-from policy.td3 import explore
+from policy.td3 import explore, flush_denormals
 from policy.train import TrainConfig, Trainer, episode_seed
 
 START, SETTLE = 1000, 300  # random steps before updates; updated steps before timing
@@ -44,7 +46,7 @@ class _Done(Exception):
     """Raised from the episode callback once enough steps are timed."""
 
 
-def _ours(sync: bool, steps: int, threads: int, seed: int) -> float:
+def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str = "fp32") -> float:
     """Env steps/s of a Trainer run between SETTLE and SETTLE + steps updated steps."""
     marks: list[tuple[float, int]] = []
 
@@ -57,7 +59,7 @@ def _ours(sync: bool, steps: int, threads: int, seed: int) -> float:
         cfg = TrainConfig(algo="td3", reward="abr", scenario="valley", episodes=10**6,
                           seed=seed, start_steps=START, buffer_size=100_000,
                           checkpoint_every=10**6, sync=sync, threads=threads,
-                          progress=False)
+                          precision=precision, progress=False)
         try:
             Trainer(cfg, Path(tmp)).run(on_episode=on_episode)
         except _Done:
@@ -91,7 +93,8 @@ def _sb3(steps: int, seed: int) -> float | None:
         train_freq=1, gradient_steps=1, action_noise=NormalActionNoise(np.zeros(4),
                                                                         0.2 * np.ones(4)),
         device="cpu", seed=seed, verbose=0)
-    model.learn(total_timesteps=START + SETTLE + steps, callback=_Clock())
+    with flush_denormals():  # the setting our trainer runs with (policy.td3)
+        model.learn(total_timesteps=START + SETTLE + steps, callback=_Clock())
     (t0, s0), (t1, s1) = marks["first"], marks["last"]
     return (s1 - s0) / (t1 - t0)
 
@@ -120,10 +123,12 @@ def _collector(n_envs: int, steps: int) -> float:
 
 def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     steps, repeats = (600, 1) if quick else (3000, 3)
-    rows: dict[str, list[float]] = {"parallel": [], "sync": [], "sb3": []}
+    rows: dict[str, list[float]] = {"parallel": [], "parallel_bf16": [], "sync": [],
+                                    "sb3": []}
     torch.set_num_threads(1)
     for r in range(repeats):
         rows["parallel"].append(_ours(False, steps, threads, seed=r))
+        rows["parallel_bf16"].append(_ours(False, steps, threads, seed=r, precision="bf16"))
         rows["sync"].append(_ours(True, steps, 1, seed=r))
         sb3 = _sb3(steps, seed=r)
         if sb3 is not None:
@@ -131,12 +136,15 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     med = {k: statistics.median(v) for k, v in rows.items() if v}
     out: dict[str, Any] = {
         "train_env_steps_per_s": med["parallel"],
+        "train_bf16_env_steps_per_s": med["parallel_bf16"],
         "train_sync_env_steps_per_s": med["sync"],
         "speedup_vs_sync": med["parallel"] / med["sync"],
         "collector_env_steps_per_s": _collector(1, min(steps, 1000)),
         "collector_4envs_env_steps_per_s": _collector(4, min(steps, 1000)),
         "config": {"steps_timed": steps, "warmup_random": START, "warmup_updated": SETTLE,
                    "repeats": repeats, "learner_threads": threads, "sync_threads": 1,
+                   "precision": "fp32 (bf16 row: --precision bf16)",
+                   "flush_denormals": True,
                    "hidden": [400, 300], "batch": 100, "torch": torch.__version__},
         "runs": rows, "peers": {},
     }

@@ -50,7 +50,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          checkpoint_every=args.checkpoint_every, start_steps=args.start_steps,
                          threads=args.threads, sync=args.sync, envs=args.envs,
                          max_lead=args.max_lead, device=args.device, env=args.env or "",
-                         goal_return=args.goal_return)
+                         goal_return=args.goal_return, precision=args.precision)
     summary = Trainer(config, Path(args.out)).run(resume=args.resume)
     print(json.dumps(summary, indent=2))
     return 0
@@ -162,6 +162,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "updates (default: 8)")
     p.add_argument("--device", default="cpu",
                    help="the learner's device: cpu, cuda, cuda:1, ... (default: cpu)")
+    p.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
+                   help="the update's arithmetic (default: fp32); bf16 = mixed precision: "
+                   "bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32 weights and Adam")
     p.add_argument("--env", metavar="GYM_ID",
                    help="a Gymnasium env id instead of --scenario, e.g. "
                    "BipedalWalkerHardcore-v3")

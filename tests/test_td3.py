@@ -145,10 +145,12 @@ def test_act_shapes_bounds_and_noise():
     assert r.shape == (200, 4) and r.min() >= -2 and r.max() <= 2 and r.std() > 0.9
 
 
-def _one_step_task(agent_cls, config_cls, updates: int, seed: int = 0) -> float:
+def _one_step_task(agent_cls, config_cls, updates: int, seed: int = 0,
+                   precision: str = "fp32") -> float:
     """Bandit: any state, reward = -sum|a - target|, every transition terminal."""
     target = np.array([0.5, -1.0, 1.0, 0.0], np.float32)
-    cfg = config_cls(state_dim=6, action_dim=4, hidden=(64, 64), seed=seed, batch_size=100)
+    cfg = config_cls(state_dim=6, action_dim=4, hidden=(64, 64), seed=seed, batch_size=100,
+                     precision=precision)
     agent = agent_cls(cfg)
     rng = np.random.default_rng(seed)
     buf = ReplayBuffer(capacity=5000, state_shape=(1, 6), action_dim=4, seed=seed)
@@ -170,6 +172,73 @@ def test_td3_learns_one_step_task():
 
 def test_ddpg_learns_one_step_task():
     assert _one_step_task(DDPG, DDPGConfig, updates=600) < 0.3
+
+
+@pytest.mark.parametrize("cls,cfg_cls", [(TD3, TD3Config), (DDPG, DDPGConfig)])
+def test_mixed_precision_learns_one_step_task(cls, cfg_cls):
+    assert _one_step_task(cls, cfg_cls, updates=600, precision="bf16") < 0.3
+
+
+def test_mixed_precision_gradients_follow_fp32_and_masters_stay_fp32():
+    """bf16: from the same weights and batch, the critic's and the actor's gradients point
+    where the float32 ones do (bfloat16 keeps ~3 significant digits); masters, targets and
+    Adam stay float32, and the copies the update computes with follow every change of the
+    masters (optimizer steps, soft updates, a load from outside)."""
+    cfg = dict(state_dim=105, action_dim=4, hidden=(64, 48), seed=3)
+    ref, mixed = TD3(TD3Config(**cfg)), TD3(TD3Config(**cfg, precision="bf16"))
+    b = _batch(n=64, seed=0, state_dim=105, action_dim=4)
+    y = ref.target(b.next_state, b.reward, b.done)
+    y_mixed = mixed.target(b.next_state, b.reward, b.done)
+    assert y_mixed.dtype == torch.float32 and torch.allclose(y_mixed, y, rtol=0.05, atol=0.02)
+
+    def grads(agent, loss) -> torch.Tensor:
+        loss.backward()
+        if agent is mixed:
+            for name in ("critic", "actor"):
+                agent.lp[name].grads_to_master()
+        params = [*agent.critic.parameters(), *agent.actor.parameters()]
+        g = torch.cat([p.grad.flatten() for p in params if p.grad is not None])
+        for p in params:
+            p.grad = None
+        return g
+
+    for loss in (lambda a: a._critic_loss(b.state.to(a.dtype), b.action, y)[0],
+                 lambda a: a._actor_loss(b.state.to(a.dtype))):
+        g_ref, g_mixed = grads(ref, loss(ref)), grads(mixed, loss(mixed))
+        assert g_mixed.dtype == torch.float32 and g_mixed.shape == g_ref.shape
+        assert torch.nn.functional.cosine_similarity(g_mixed, g_ref, dim=0) > 0.99
+
+    for i in range(4):
+        assert np.isfinite(mixed.update(_batch(n=32, seed=i, state_dim=105, action_dim=4))
+                           ["critic_loss"])
+    for net in ("actor", "critic", "actor_target", "critic_target"):
+        masters = list(getattr(mixed, net).parameters())
+        assert all(p.dtype == torch.float32 for p in masters)
+        for p, p_lp in zip(masters, mixed.lp[net].net().parameters(), strict=True):
+            assert p_lp.dtype == torch.bfloat16 and torch.equal(p_lp, p.to(torch.bfloat16))
+    assert all(s["exp_avg"].dtype == torch.float32 for s in mixed.critic_opt.state.values())
+    assert ref.lp["critic"].net() is ref.critic  # no copy in float32
+    mixed.actor.load_state_dict(ref.actor.state_dict())  # from outside: an actor file
+    for p_ref, p_lp in zip(ref.actor.parameters(), mixed.lp["actor"].net().parameters(),
+                           strict=True):
+        assert torch.equal(p_lp, p_ref.to(torch.bfloat16))
+
+
+def test_flush_denormals_only_inside():
+    tiny = torch.tensor([1e-39], dtype=torch.float32)  # a denormal
+    from policy.td3 import flush_denormals
+
+    with flush_denormals():
+        assert (tiny * 1.0).item() == 0.0
+    assert (tiny * 1.0).item() > 0.0
+
+
+def test_precision_is_checked():
+    with pytest.raises(ValueError, match="precision"):
+        TD3Config(precision="fp8")
+    from policy.td3 import best_precision
+
+    assert best_precision("cpu") in ("fp32", "bf16")
 
 
 def _roundtrip(state):

@@ -86,8 +86,9 @@ def _state(pid: int) -> str:
 def test_parallel_mode_keeps_one_update_per_env_step(tmp_path):
     """Collector process and learner: every episode is recorded once, in order, and the
     learner's updates trail the env steps by at most the collector's bounded lead."""
-    cfg = TrainConfig(episodes=6, **{**SMALL, "sync": False, "envs": 2, "max_lead": 4})
-    Trainer(cfg, tmp_path).run()
+    cfg = TrainConfig(episodes=6, **{**SMALL, "sync": False, "envs": 2, "max_lead": 4,
+                                     "precision": "bf16"})
+    assert Trainer(cfg, tmp_path).run()["precision"] == "bf16"
     rows = (tmp_path / "episodes.csv").read_text().splitlines()[1:]
     assert [int(r.split(",")[0]) for r in rows] == list(range(1, 7))
     state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
@@ -100,6 +101,14 @@ def test_parallel_mode_draws_the_random_phase_as_sync_does(tmp_path):
     """Before the first update both loops take the same actions on the same episodes."""
     kw = {"start_steps": 100_000}
     assert _train(tmp_path / "p", 3, sync=False, **kw) == _train(tmp_path / "s", 3, **kw)
+
+
+def test_mixed_precision_sync_runs_are_reproducible(tmp_path):
+    a = _train(tmp_path / "a", 3, precision="bf16")
+    assert a == _train(tmp_path / "b", 3, precision="bf16")
+    assert a != _train(tmp_path / "c", 3)  # and they are not the float32 run
+    state = torch.load(tmp_path / "a" / CHECKPOINT, weights_only=False)
+    assert state["agent"]["config"]["precision"] == "bf16" and state["agent"]["updates"] > 0
 
 
 def test_sync_envs_keep_their_episodes_apart(tmp_path):
@@ -120,6 +129,8 @@ def test_bad_input_is_a_clear_error_and_overwrites_nothing(tmp_path):
         TrainConfig(scenario="moon").validate()
     with pytest.raises(ValueError, match="--envs"):
         TrainConfig(envs=0).validate()
+    with pytest.raises(ValueError, match="--precision"):
+        TrainConfig(precision="fp16").validate()
     with pytest.raises(ValueError, match="--device 'cuda:7'"):
         TrainConfig(device="cuda:7").validate()
 
