@@ -84,7 +84,10 @@ class _Progress:
 
         class _Callback(Callback):
             def on_trial_result(self, iteration, trials, trial, result, **info):
-                progress.episodes[trial.config["trial"]] = int(result["episode"])
+                name, episode = trial.config["trial"], int(result["episode"])
+                # a trial restarted from an earlier checkpoint goes back: count gains only
+                progress.gained += max(0, episode - progress.episodes.get(name, 0))
+                progress.episodes[name] = episode
                 progress.maybe_print()
 
             def on_trial_complete(self, iteration, trials, trial, **info):
@@ -98,7 +101,7 @@ class _Progress:
         self.total = grid.episodes
         self.trials = len(grid.trials)
         self.episodes = dict(done_episodes)
-        self.start_episodes = sum(done_episodes.values())
+        self.gained = 0  # episodes trained since this command started
         self.finished = sum(1 for t in grid.trials
                             if done_episodes.get(t.name, 0) >= t.config.episodes)
         self.t0 = self.last = time.monotonic()
@@ -110,7 +113,7 @@ class _Progress:
             return
         self.last = now
         done = sum(self.episodes.values())
-        rate = (done - self.start_episodes) / max(now - self.t0, 1e-9) * 60.0
+        rate = self.gained / max(now - self.t0, 1e-9) * 60.0
         eta = (self.total - done) / rate * 60.0 if rate > 0 else float("inf")
         eta_s = "?" if eta == float("inf") else f"{eta / 3600:.1f} h"
         print(f"[experiment] {self.finished}/{self.trials} trials finished, episodes "
@@ -118,10 +121,14 @@ class _Progress:
               f"ETA {eta_s}" + (f"  ({note})" if note else ""), flush=True)
 
 
-def _episodes_done(out: Path, grid: Grid) -> dict[str, int]:
-    """Episodes in each trial's CSV (a progress estimate only)."""
+def _episodes_done(out: Path, grid: Grid, status: dict[str, str]) -> dict[str, int]:
+    """Episodes in each trial's CSV (a progress estimate only); 0 for a trial that starts
+    over (no checkpoint: its old CSV is dropped)."""
     done = {}
     for t in grid.trials:
+        if status[t.name] == "new":
+            done[t.name] = 0
+            continue
         csv_path = out / t.name / "episodes.csv"
         try:
             done[t.name] = max(0, sum(1 for _ in csv_path.open()) - 1)
@@ -130,11 +137,28 @@ def _episodes_done(out: Path, grid: Grid) -> dict[str, int]:
     return done
 
 
+def _honour_nice() -> None:
+    """Give this session's autogroup this process's niceness (Linux).
+
+    With autogroup scheduling (``/proc/sys/kernel/sched_autogroup_enabled``) the CPU is
+    shared between sessions first and by niceness only inside one, so a grid started as
+    ``setsid nice -n 19 skyloop experiment run ...`` still took half of a 2-core machine
+    from interactive work (seen here). Only a session leader does this: from an
+    interactive shell the group is the user's whole session."""
+    try:
+        niceness = os.nice(0)
+        if niceness > 0 and os.getsid(0) == os.getpid():
+            Path("/proc/self/autogroup").write_text(str(niceness))
+    except OSError:
+        pass
+
+
 def run_grid(grid: Grid, out: Path, max_concurrent: int | None = None,
              address: str | None = None, cpus_per_trial: int | None = None
              ) -> dict[str, str]:
     """Run (or continue) every unfinished trial of ``grid`` under ``out``; returns the
     status of each trial afterwards."""
+    _honour_nice()
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     shutil.copy(grid.path, out / "grid.toml")
@@ -172,7 +196,7 @@ def run_grid(grid: Grid, out: Path, max_concurrent: int | None = None,
         trainable = tune.with_resources(
             tune.with_parameters(_train_trial, configs=configs, out=str(out)),
             {"cpu": cpus_per_trial})
-        progress = _Progress(grid, _episodes_done(out, grid))
+        progress = _Progress(grid, _episodes_done(out, grid, status))
         tuner = tune.Tuner(
             trainable,
             param_space={"trial": tune.grid_search([t.name for t in todo])},
