@@ -19,6 +19,8 @@ release); ``uid`` is the system id so several vehicles stay distinguishable.
 
 from __future__ import annotations
 
+from importlib.metadata import PackageNotFoundError, version
+
 from mavlink_bridge.transport import mavlink
 
 CAPABILITIES = (
@@ -31,7 +33,19 @@ CAPABILITIES = (
     | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
     | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
 )
-SKYLOOP_VERSION = (0, 5, 0)  # reported as flight_sw_version
+
+
+def _package_version() -> tuple[int, int, int]:
+    """(major, minor, patch) of the installed skyloop package (pyproject.toml's version)."""
+    try:
+        parts = [int("".join(c for c in p if c.isdigit()) or 0)
+                 for p in version("skyloop").split(".")[:3]]
+    except PackageNotFoundError:
+        parts = []
+    return tuple((parts + [0, 0, 0])[:3])  # type: ignore[return-value]
+
+
+SKYLOOP_VERSION = _package_version()  # reported as flight_sw_version
 _FIRMWARE_TYPE_RELEASE = 255
 
 

@@ -12,10 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bus.task import TASK
 from perception.faces import ENCODINGS, face_values
 from perception.icosahedron import N_FACES, TruncatedIcosahedron
 
-OBS_DIM = N_FACES + 3  # 35
+OBS_DIM = TASK.obs_dim  # the faces, z, h, g
+assert TASK.faces == N_FACES, "the task's faces are the truncated icosahedron's"
 #: Horizontal speed (m/s) below which g is measured from the heading instead of the
 #: velocity (the velocity direction of a hovering UAV is estimator noise).
 MIN_SPEED = 0.1
@@ -133,7 +135,7 @@ class FrameStacker:
     every episode start: a stack never spans two episodes.
     """
 
-    def __init__(self, frames: int = 3, dim: int = OBS_DIM) -> None:
+    def __init__(self, frames: int = TASK.frames, dim: int = OBS_DIM) -> None:
         if frames < 1 or dim < 1:
             raise ValueError(f"frames and dim must be >= 1, got {frames}, {dim}")
         self.frames = int(frames)

@@ -50,6 +50,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from bus.task import TASK
 from policy.rewards import GoalReward
 
 __all__ = [
@@ -65,8 +66,8 @@ __all__ = [
 class ABRConfig:
     """ABR parameters (paper Table 4.1) and the CNN's shape and seed."""
 
-    p_frames: int = 3
-    p_attributes: int = 35
+    p_frames: int = TASK.frames
+    p_attributes: int = TASK.obs_dim
     p_features: int = 20
     p_similarity: float = 0.98
     p_add_reward: float = 0.1

@@ -20,31 +20,36 @@ before use, as the MAVLink path carries float32, so the env and the stack agree.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import gymnasium
 import numpy as np
 from gymnasium import spaces
 
+from bus.task import TASK, TaskSpec
 from perception.icosahedron import TruncatedIcosahedron
 from perception.observation import FrameStacker, ObservationConfig, observation_from_scan
 from policy.rewards import RewardConfig, base_reward, collision_reward
 from sitl.episode import EpisodeConfig, EpisodeSim, body_to_world
 
-OBS_DIM = 35
-FRAMES = 3
-MAX_ACTION = 2.0
+OBS_DIM, FRAMES, MAX_ACTION = TASK.obs_dim, TASK.frames, TASK.max_action  # bus.task
 
 
 @dataclass
 class EnvConfig:
-    """Task parameters; defaults are the paper's Table 4.1 and abr-method.md."""
+    """Episode limits (defaults: the task specification, ``bus.task``) and the scenario."""
 
-    max_steps: int = 300
-    goal_radius: float = 2.0
-    goal_max_altitude: float = 6.0
+    max_steps: int = TASK.max_steps
+    goal_radius: float = TASK.goal_radius
+    goal_max_altitude: float = TASK.goal_max_altitude
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)  # scenario, LiDAR range
+
+    @property
+    def task(self) -> TaskSpec:
+        """The task specification with this config's limits."""
+        return replace(TASK, max_steps=self.max_steps, goal_radius=self.goal_radius,
+                       goal_max_altitude=self.goal_max_altitude)
 
 
 __all__ = ["EnvConfig", "UavNavEnv", "body_to_world"]
@@ -75,8 +80,9 @@ class UavNavEnv(gymnasium.Env):
         self.sim = EpisodeSim(self.config.episode)
         self.world, self.vehicle, self.lidar = self.sim.world, self.sim.vehicle, self.sim.lidar
         self.ico = TruncatedIcosahedron(self.obs_config.radius)
+        self.task = self.config.task
         self.stacker = FrameStacker(FRAMES, OBS_DIM)
-        self.action_space = spaces.Box(-MAX_ACTION, MAX_ACTION, (4,), np.float32)
+        self.action_space = spaces.Box(-MAX_ACTION, MAX_ACTION, (TASK.action_dim,), np.float32)
         # Scaled attributes: faces in [0, 2], altitude z/10 (|z| <= 100 m), h and g in [0, 2).
         self.observation_space = spaces.Box(-10.0, 10.0, (FRAMES, OBS_DIM), np.float32)
         self._seed = seed
@@ -103,7 +109,7 @@ class UavNavEnv(gymnasium.Env):
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         action = np.asarray(action, dtype=np.float64).reshape(-1)
-        if action.shape != (4,):
+        if action.shape != (TASK.action_dim,):
             raise ValueError(f"action must be (vx, vy, vz, yaw_rate), got shape {action.shape}")
         if not np.all(np.isfinite(action)):
             raise ValueError(f"action must be finite, got {action.tolist()}")
@@ -122,13 +128,11 @@ class UavNavEnv(gymnasium.Env):
                 d_prev, self._distance, float(truth.position[2]), self._h, self._g,
                 self.reward_config,
             )
-        reached = (
-            not collided
-            and self._distance <= self.config.goal_radius
-            and truth.position[2] <= self.config.goal_max_altitude
-        )
-        terminated = bool(collided or reached)
-        truncated = bool(not terminated and self.steps >= self.config.max_steps)
+        outcome = self.task.outcome(collided, self._distance, float(truth.position[2]),
+                                    self.steps)
+        reached = outcome == "success"
+        terminated = outcome in ("success", "collision")
+        truncated = outcome == "timeout"
         info = self._info(collided=collided, reached=reached, parts=parts)
         return self.stacker.push(obs), float(reward), terminated, truncated, info
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from bus import keys
 from bus import messages as m
+from bus.task import TASK
 from policy.transitions import EpisodeSteps, Pose
 
 BODY_FRAME = "base_link"
@@ -41,7 +42,7 @@ TOPICS = (keys.EPISODE, keys.OBSERVATION, keys.TRUTH, keys.CMD_VEL)
 class AssemblerConfig:
     grace_s: float = 2.0  # how long a closed episode waits for late observations/commands
     max_pending: int = 20_000  # observations / commands kept per vehicle (oldest dropped)
-    obs_dim: int = 35
+    obs_dim: int = TASK.obs_dim
 
 
 @dataclass

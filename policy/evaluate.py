@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from bus.task import TASK
 from policy.env import UavNavEnv
 from policy.rollout import run_episodes, summarize
 from policy.scripted import StraightLineController
@@ -34,7 +35,7 @@ class ActorController:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such policy file")
         try:
-            self.actor = load_actor(path)
+            self.actor = load_actor(path, task=TASK)
         except ValueError:
             raise
         except Exception as exc:  # torch raises many types for a corrupt file

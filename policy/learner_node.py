@@ -35,12 +35,13 @@ import torch
 from tqdm import tqdm
 
 from bus import keys
+from bus.task import TASK
 from policy.agents import make_agent
 from policy.episode_assembler import TOPICS, AssemblerConfig, EpisodeAssembler
 from policy.learner import LearnerConfig
 from policy.replay import ReplayBuffer
 from policy.rewards import RewardConfig, make_goal_reward
-from policy.transitions import FRAMES, OBS_DIM, add_episode, transitions_from_steps
+from policy.transitions import add_episode, transitions_from_steps
 from policy.weights import actor_weights_message
 
 log = logging.getLogger("skyloop.learner")
@@ -62,7 +63,9 @@ class Learner:
         torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.agent = make_agent(config.algo, seed=config.seed)
-        self.buffer = ReplayBuffer(config.buffer_size, (FRAMES, OBS_DIM), 4, seed=config.seed)
+        self.agent.task = TASK.to_dict()  # recorded in the actor files it publishes
+        self.buffer = ReplayBuffer(config.buffer_size, TASK.state_shape, TASK.action_dim,
+                                   seed=config.seed)
         self.reward_config = RewardConfig()
         self.goal_reward = make_goal_reward(config.reward, self.reward_config, seed=config.seed)
         self.assembler = EpisodeAssembler(AssemblerConfig(grace_s=config.grace_s))

@@ -15,6 +15,7 @@ import numpy as np
 from bus import messages as m
 from bus.keys import CMD_VEL, EPISODE, OBSERVATION, TRUTH
 from bus.log import EpisodeLogWriter
+from bus.task import episode_outcome
 from policy.rollout import Controller
 
 NS = 1_000_000_000
@@ -52,8 +53,7 @@ def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_
             snapshot(i, k, t, state[-1])
             if terminated or truncated:
                 break
-        outcome = ("success" if info["goal_reached"] else
-                   "collision" if info["collision"] else "timeout")
+        outcome = episode_outcome(info["goal_reached"], info["collision"])
         put(EPISODE, m.episode_end(i, outcome, k, t, seed=seed + i, scenario=scenario), t)
         clock += int(round((t + 1.0) * NS))
     writer.close()

@@ -20,6 +20,8 @@ import math
 import torch
 from torch import nn
 
+from bus.task import TASK
+
 __all__ = ["Actor", "Critic", "TwinCritic", "SingleCritic", "mlp"]
 
 
@@ -40,10 +42,10 @@ class Actor(nn.Module):
 
     def __init__(
         self,
-        state_dim: int = 105,
-        action_dim: int = 4,
+        state_dim: int = TASK.state_dim,
+        action_dim: int = TASK.action_dim,
         hidden: tuple[int, ...] = (400, 300),
-        max_action: float = 2.0,
+        max_action: float = TASK.max_action,
     ) -> None:
         super().__init__()
         self.net = mlp([state_dim, *hidden, action_dim], nn.Tanh())
@@ -64,8 +66,8 @@ class Critic(nn.Module):
 
     def __init__(
         self,
-        state_dim: int = 105,
-        action_dim: int = 4,
+        state_dim: int = TASK.state_dim,
+        action_dim: int = TASK.action_dim,
         hidden: tuple[int, ...] = (400, 300),
         num_q: int = 2,
     ) -> None:
@@ -117,14 +119,16 @@ class Critic(nn.Module):
 
 
 def TwinCritic(
-    state_dim: int = 105, action_dim: int = 4, hidden: tuple[int, ...] = (400, 300)
+    state_dim: int = TASK.state_dim, action_dim: int = TASK.action_dim,
+    hidden: tuple[int, ...] = (400, 300),
 ) -> Critic:
     """TD3's two critics Q_1, Q_2 in one fused module."""
     return Critic(state_dim, action_dim, hidden, num_q=2)
 
 
 def SingleCritic(
-    state_dim: int = 105, action_dim: int = 4, hidden: tuple[int, ...] = (400, 300)
+    state_dim: int = TASK.state_dim, action_dim: int = TASK.action_dim,
+    hidden: tuple[int, ...] = (400, 300),
 ) -> Critic:
     """DDPG's single critic (the same module with one head)."""
     return Critic(state_dim, action_dim, hidden, num_q=1)

@@ -51,13 +51,14 @@ import numpy as np
 from bus import keys
 from bus import messages as m
 from bus.node import Bus
+from bus.task import TASK
 from mavlink_bridge.modes import AUTO_LOITER, AUTO_TAKEOFF, OFFBOARD
 from mavlink_bridge.offboard_client import OffboardClient, OffboardClientConfig, OffboardError
 from perception.observation import FrameStacker
 
 log = logging.getLogger("skyloop.policy")
 READY_LINE = "SKYLOOP-POLICY-READY"
-MAX_ACTION = 2.0
+MAX_ACTION = TASK.max_action  # bus.task
 Controller = Callable[[np.ndarray], np.ndarray]
 
 
@@ -76,8 +77,8 @@ class PolicyNode:
     """Flies ``controller`` through MAVLink (see the module docstring)."""
 
     def __init__(self, bus: Bus, controller: Controller, vehicle: str = "uav1",
-                 client_config: OffboardClientConfig | None = None, frames: int = 3,
-                 dim: int = 35, lockstep: bool = True, weights: Any = None,
+                 client_config: OffboardClientConfig | None = None, frames: int = TASK.frames,
+                 dim: int = TASK.obs_dim, lockstep: bool = True, weights: Any = None,
                  hold: bool = False) -> None:
         self.bus, self.controller, self.vehicle = bus, controller, vehicle
         self.weights = weights  # a policy.weights.WeightsFollower, or None

@@ -36,6 +36,7 @@ from tqdm import tqdm
 from bus.log import read_episodes
 from bus.log_reader import EpisodeLogReader
 from bus.messages import nanoseconds, observation_values, odometry_values, twist_values
+from bus.task import TASK
 from policy.replay import ReplayBuffer
 from policy.rewards import RewardConfig, make_goal_reward
 from policy.td3 import TD3, TD3Config
@@ -162,7 +163,7 @@ def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: 
     """Rebuild transitions from logs, train TD3 (or TD3+BC), write ``out/actor.pt``."""
     torch.set_num_threads(1)
     config = RewardConfig()
-    buffer = ReplayBuffer(1_000_000, (FRAMES, OBS_DIM), 4, seed=seed)
+    buffer = ReplayBuffer(1_000_000, (FRAMES, OBS_DIM), TASK.action_dim, seed=seed)
     goal_reward = make_goal_reward(reward, config, seed=seed)
     report = load_logs(paths, buffer, goal_reward, config)
     summary = {"episodes_used": report.episodes_used, "transitions": report.transitions,
@@ -171,6 +172,7 @@ def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: 
     if report.transitions == 0:
         raise ValueError(f"no usable episodes in {[str(p) for p in paths]}: {report.skipped}")
     agent = (TD3BC if bc else TD3)(TD3Config(seed=seed))
+    agent.task = TASK.to_dict()  # recorded in its actor file
     if init_actor is not None:
         from policy.td3 import load_actor
 

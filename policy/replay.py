@@ -80,6 +80,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
+from bus.task import TASK
+
 __all__ = ["Batch", "Episode", "ReplayBuffer"]
 
 FORMAT = "skyloop-replay-2"  # the compact checkpoint; format 1 had no "format" key
@@ -162,7 +164,7 @@ class ReplayBuffer:
     def __init__(
         self,
         capacity: int = 1_000_000,
-        state_shape: tuple[int, ...] = (3, 35),
+        state_shape: tuple[int, ...] = TASK.state_shape,
         action_dim: int = 4,
         seed: int = 0,
     ) -> None:

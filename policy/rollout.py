@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bus.task import episode_outcome
+
 Controller = Callable[[np.ndarray], np.ndarray]
 
 
@@ -32,16 +34,13 @@ class EpisodeResult:
 def run_episode(env, controller: Controller, seed: int) -> EpisodeResult:
     """One episode with ``env.reset(seed=seed)``; the controller sees the stacked state."""
     state, info = env.reset(seed=seed)
-    total, outcome = 0.0, "timeout"
+    total = 0.0
     while True:
         state, reward, terminated, truncated, info = env.step(controller(state))
         total += reward
         if terminated or truncated:
-            if info["goal_reached"]:
-                outcome = "success"
-            elif info["collision"]:
-                outcome = "collision"
             break
+    outcome = episode_outcome(info["goal_reached"], info["collision"])
     base = env.unwrapped
     path = np.array(base.path)
     length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())

@@ -51,6 +51,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from bus.task import TASK, TaskSpec
 from policy.networks import Actor, Critic
 from policy.replay import Batch
 
@@ -70,9 +71,9 @@ class TD3Config:
     is the paper's target noise bound c = 0.5 (absolute).
     """
 
-    state_dim: int = 105  # 3 frames x 35 attributes
-    action_dim: int = 4  # l_x, l_y, l_z, a_z
-    max_action: float = 2.0  # actions in [-2, 2]
+    state_dim: int = TASK.state_dim  # 3 frames x 35 attributes (bus.task)
+    action_dim: int = TASK.action_dim  # l_x, l_y, l_z, a_z
+    max_action: float = TASK.max_action  # actions in [-2, 2]
     hidden: tuple[int, ...] = (400, 300)  # [choice]
     gamma: float = 0.99
     tau: float = 0.005
@@ -274,6 +275,9 @@ class TD3:
         self.noise_gen = torch.Generator().manual_seed(c.seed + 1)  # target smoothing
         self.rng = np.random.default_rng(c.seed + 2)  # exploration noise, random actions
         self.updates = 0
+        # the skyloop task this agent learns (bus.task.TaskSpec.to_dict()), recorded in
+        # its actor files; None for other tasks (Gymnasium env ids)
+        self.task: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ acting
 
@@ -372,15 +376,15 @@ class TD3:
         """Write the actor alone (what a deployed policy needs); read with ``load_actor``
         (a path, or a binary file object such as ``io.BytesIO``)."""
         c = self.config
-        torch.save(
-            {
-                "format": ACTOR_FORMAT,
-                "config": {"state_dim": c.state_dim, "action_dim": c.action_dim,
-                           "hidden": list(c.hidden), "max_action": c.max_action},
-                "actor": self.actor.state_dict(),
-            },
-            path,
-        )
+        state = {
+            "format": ACTOR_FORMAT,
+            "config": {"state_dim": c.state_dim, "action_dim": c.action_dim,
+                       "hidden": list(c.hidden), "max_action": c.max_action},
+            "actor": self.actor.state_dict(),
+        }
+        if self.task is not None:
+            state["task"] = dict(self.task)
+        torch.save(state, path)
 
     def state_dict(self) -> dict[str, Any]:
         """Networks, targets, optimizers, counters and RNG states (``weights_only`` safe)."""
@@ -419,11 +423,27 @@ class TD3:
             copy_.changed()
 
 
-def load_actor(path: str | Path | BinaryIO) -> Actor:
-    """Read an actor written by ``TD3.save_actor`` (eval mode, no gradients)."""
+#: TaskSpec fields that shape what an actor reads and writes: an actor trained with other
+#: values cannot fly this task (the episode limits may differ: they change no input)
+TASK_IO_FIELDS = ("frames", "faces", "action_dim", "max_action")
+
+
+def load_actor(path: str | Path | BinaryIO, task: TaskSpec | None = None) -> Actor:
+    """Read an actor written by ``TD3.save_actor`` (eval mode, no gradients).
+
+    With ``task``, an actor file that records the task it was trained for must match it
+    in ``TASK_IO_FIELDS`` (ValueError naming the file and the field); files from before
+    the task was recorded are taken as they are.
+    """
     state = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(state, dict) or state.get("format") != ACTOR_FORMAT:
         raise ValueError(f"{path}: not a skyloop actor file")
+    if task is not None and "task" in state:
+        trained = TaskSpec.from_dict(state["task"], where=str(path))
+        for name in TASK_IO_FIELDS:
+            if getattr(trained, name) != getattr(task, name):
+                raise ValueError(f"{path}: trained for task {name}={getattr(trained, name)}"
+                                 f", but this task has {name}={getattr(task, name)}")
     c = state["config"]
     actor = Actor(c["state_dim"], c["action_dim"], tuple(c["hidden"]), c["max_action"])
     actor.load_state_dict(state["actor"])

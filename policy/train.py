@@ -54,9 +54,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from bus.task import episode_outcome
 from policy.agents import ALGOS, make_agent
 from policy.collector import Collector, CollectorSpec, SharedActor, Transition, collector_main
-from policy.env import FRAMES, MAX_ACTION, OBS_DIM, UavNavEnv
+from policy.env import UavNavEnv
 from policy.plots import CSV_NAME, plot_runs
 from policy.replay import ReplayBuffer
 from policy.rewards import GOAL_REWARDS, RewardConfig, make_goal_reward
@@ -165,9 +166,14 @@ class Trainer:
                                     precision=config.precision)
             abr = {"p_frames": shape[0], "p_attributes": shape[1]}
         else:
-            shape, action_dim, self.max_action = (FRAMES, OBS_DIM), 4, MAX_ACTION
+            # sizes from the env's spaces (the task specification, bus.task)
+            shape = probe.observation_space.shape
+            action_dim = probe.action_space.shape[0]
+            self.max_action = float(probe.action_space.high[0])
             self.agent = make_agent(config.algo, seed=config.seed, device=config.device,
-                                    precision=config.precision)
+                                    state_dim=int(np.prod(shape)), action_dim=action_dim,
+                                    max_action=self.max_action, precision=config.precision)
+            self.agent.task = probe.task.to_dict()  # recorded in the actor files
             abr = {}
         self._first_env = probe
         self.buffer = ReplayBuffer(config.buffer_size, shape, action_dim, seed=config.seed)
@@ -257,10 +263,10 @@ class Trainer:
         """The goal reward rewrites the finished episode of ``tr.stream``; its CSV row."""
         sums = self._open.pop(tr.stream)
         reached = bool(tr.info["goal_reached"])
+        outcome = episode_outcome(reached, bool(tr.info["collision"]))
         episode = self.buffer.end_episode(stream=tr.stream)
         rewards = self.goal_reward.on_episode_end(self.buffer, episode, reached)
         groups = getattr(self.goal_reward, "last_groups", []) if reached else []
-        outcome = "success" if reached else "collision" if tr.info["collision"] else "timeout"
         self.outcomes.append(outcome)
         self.episode += 1
         return {

@@ -20,10 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from bus.messages import yaw_of
+from bus.task import TASK
 from perception.observation import FrameStacker, ObservationConfig, goal_angles
 from policy.rewards import GoalReward, RewardConfig, base_reward, collision_reward
 
-OBS_DIM, FRAMES = 35, 3
+OBS_DIM, FRAMES = TASK.obs_dim, TASK.frames  # bus.task
 OUTCOMES = ("success", "collision", "timeout", "aborted")
 
 #: One true pose: position (3,), velocity (3,), quaternion (x, y, z, w) (4,).

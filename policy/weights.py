@@ -27,6 +27,7 @@ import torch
 
 from bus import keys
 from bus import messages as m
+from bus.task import TASK
 from policy.networks import Actor
 from policy.td3 import ACTOR_FORMAT, TD3, load_actor
 
@@ -66,7 +67,7 @@ def decode_actor(msg: Any, like: Actor) -> Actor:
     if msg.sha256 and hashlib.sha256(blob).hexdigest() != msg.sha256:
         raise WeightsRejected("sha256", "the digest does not match the blob")
     try:
-        actor = load_actor(io.BytesIO(blob))
+        actor = load_actor(io.BytesIO(blob), task=TASK)
     except Exception as exc:  # noqa: BLE001 - torch raises many types for bad bytes
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
         raise WeightsRejected("decode", f"the blob does not decode ({first})") from None

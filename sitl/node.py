@@ -79,18 +79,20 @@ import math
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from bus import keys
 from bus import messages as m
+from bus.task import TASK
 from sitl.commander import State
 from sitl.node_step import BODY_FRAME, POLL_S, SimNodeConfig, StepLoop
-from sitl.node_util import outcome_of, quat_from_matrix, quat_from_yaw
+from sitl.node_util import quat_from_matrix, quat_from_yaw
 
 __all__ = ["BODY_FRAME", "EPISODE_LINE", "READY_LINE", "SUMMARY_LINE", "SimNode",
-           "SimNodeConfig", "outcome_of", "quat_from_matrix", "quat_from_yaw"]
+           "SimNodeConfig", "quat_from_matrix", "quat_from_yaw"]
 
 log = logging.getLogger("skyloop.sim")
 EPISODE_LINE = "SKYLOOP-EPISODE "
@@ -120,14 +122,15 @@ class SimNode(StepLoop):
             s.new_goal(goal)
         self.pub[keys.EPISODE].put(m.episode_start(i, seed, s.start, s.goal, self._stamp(),
                                                    c.scenario))
-        max_steps = math.inf if c.free_flight else c.max_steps
+        task = replace(TASK, max_steps=math.inf if c.free_flight else c.max_steps,
+                       goal_radius=c.goal_radius, goal_max_altitude=c.goal_max_altitude)
         path = [s.vehicle.truth.position.copy()]
         while True:
             collided = self.tick(i)
             truth = s.vehicle.truth
             path.append(truth.position.copy())
-            outcome = outcome_of(collided, s.goal_distance(), float(truth.position[2]),
-                                 s.steps, c.goal_radius, c.goal_max_altitude, max_steps)
+            outcome = task.outcome(collided, s.goal_distance(), float(truth.position[2]),
+                                   s.steps)
             if outcome is None and (self._pending_goal is not None or self.stopping.is_set()):
                 outcome = "aborted"
             if outcome is not None:

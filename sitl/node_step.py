@@ -15,6 +15,7 @@ import numpy as np
 from bus import keys
 from bus import messages as m
 from bus.node import Bus
+from bus.task import TASK
 from sitl.commander import Commander, State, VehicleSample
 from sitl.episode import EpisodeConfig, EpisodeSim
 from sitl.flight_model import REST_HEIGHT
@@ -36,9 +37,9 @@ class SimNodeConfig:
     seed: int = 0
     vehicle: str = "uav1"
     realtime: bool = False
-    max_steps: int = 300
-    goal_radius: float = 2.0
-    goal_max_altitude: float = 6.0
+    max_steps: int = TASK.max_steps
+    goal_radius: float = TASK.goal_radius
+    goal_max_altitude: float = TASK.goal_max_altitude
     match_timeout_s: float = 10.0  # wait for subscribers before the first episode
     free_flight: bool = False
     goals_from_bus: bool = False  # free flight toward bus goals only, holding between

@@ -1,4 +1,4 @@
-"""Small pure helpers of the simulator node: quaternions for messages, episode outcomes."""
+"""Small pure helpers of the simulator node: quaternions for messages."""
 
 from __future__ import annotations
 
@@ -28,16 +28,3 @@ def quat_from_matrix(r: np.ndarray) -> tuple[float, float, float, float]:
     q[k] = (r[k, i] + r[i, k]) / s
     q[3] = (r[k, j] - r[j, k]) / s
     return (q[0], q[1], q[2], q[3])
-
-
-def outcome_of(collided: bool, distance: float, altitude: float, steps: int,
-               goal_radius: float = 2.0, goal_max_altitude: float = 6.0,
-               max_steps: float = 300) -> str | None:
-    """The env's episode-end rules: ``success``/``collision``/``timeout`` or None."""
-    if collided:
-        return "collision"
-    if distance <= goal_radius and altitude <= goal_max_altitude:
-        return "success"
-    if steps >= max_steps:
-        return "timeout"
-    return None

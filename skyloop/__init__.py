@@ -8,6 +8,7 @@ works after ``import skyloop``.
 from __future__ import annotations
 
 import os
+from importlib.metadata import PackageNotFoundError, version
 
 # Small matrices on a 2-core machine: BLAS threads cost far more than they save
 # (measured up to 50x slower for the icosahedron matmuls). Users can still override.
@@ -15,7 +16,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import gymnasium  # noqa: E402
 
-__version__ = "0.1.0"
+try:  # the one version is pyproject.toml's, as installed
+    __version__ = version("skyloop")
+except PackageNotFoundError:  # running from a tree that was never installed
+    __version__ = "0+unknown"
 
 ENV_ID = "skyloop/UavNav-v0"
 

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from skyloop.argtypes import nonnegative_int, positive_int
+
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from skyloop.demo import run_demo
@@ -108,7 +110,7 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
     r.set_defaults(func=_cmd_experiment_run)
     r = esub.add_parser("report", help="REPORT.md, summary.json and figures of a grid")
     r.add_argument("dir", help="grid directory written by 'skyloop experiment run'")
-    r.add_argument("--eval-episodes", type=int, default=0, metavar="N",
+    r.add_argument("--eval-episodes", type=nonnegative_int, default=0, metavar="N",
                    help="evaluate each final actor on N held-out episodes (default: 0)")
     r.set_defaults(func=_cmd_experiment_report)
 
@@ -117,11 +119,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="skyloop", description="Software-in-the-loop drone stack (see README.md)."
     )
+    from skyloop import __version__
+
+    parser.add_argument("--version", action="version", version=f"skyloop {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("demo", help="fly a controller through a scenario, print a summary")
     p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=int, default=5)
+    p.add_argument("--episodes", type=positive_int, default=5)
     p.add_argument("--seed", type=int, default=1000)
     p.add_argument("--out-dir", default="out")
     p.add_argument("--policy", help="actor file or 'scripted'; default: the shipped policy")
@@ -144,20 +149,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--algo", default="td3", help="td3 or ddpg")
     p.add_argument("--reward", default="abr", help="tr, ngr, egr or abr")
     p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=int, default=5000)
+    p.add_argument("--episodes", type=positive_int, default=5000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="run directory (CSV, TensorBoard, checkpoints)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument("--checkpoint-every", type=int, default=100, metavar="EPISODES")
-    p.add_argument("--start-steps", type=int, default=10_000,
+    p.add_argument("--checkpoint-every", type=positive_int, default=100, metavar="EPISODES")
+    p.add_argument("--start-steps", type=nonnegative_int, default=10_000,
                    help="initial uniformly random steps (abr-method.md: 10,000)")
-    p.add_argument("--threads", type=int, default=1, help="the learner's torch threads")
+    p.add_argument("--threads", type=positive_int, default=1, help="the learner's torch threads")
     p.add_argument("--sync", action="store_true",
                    help="envs and learner take turns in one process: bit-reproducible with "
                    "a seed (default: a collector process beside the learner, faster)")
-    p.add_argument("--envs", type=int, default=1, metavar="N",
+    p.add_argument("--envs", type=positive_int, default=1, metavar="N",
                    help="envs stepped in turn by the collector (default: 1)")
-    p.add_argument("--max-lead", type=int, default=8, metavar="STEPS",
+    p.add_argument("--max-lead", type=positive_int, default=8, metavar="STEPS",
                    help="parallel mode: env steps the collector may run ahead of the "
                    "updates (default: 8)")
     p.add_argument("--device", default="cpu",
@@ -172,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --env: the episodic return that counts as reaching the goal")
     p.add_argument("--from-logs", nargs="+", metavar="LOG",
                    help="learn offline from episode logs (MCAP files or run directories)")
-    p.add_argument("--updates", type=int, default=10_000, help="with --from-logs: TD3 updates")
+    p.add_argument("--updates", type=positive_int, default=10_000,
+                   help="with --from-logs: TD3 updates")
     p.add_argument("--bc", action="store_true", help="with --from-logs: TD3+BC")
     p.add_argument("--init-actor", help="with --from-logs: start from this actor file")
     p.set_defaults(func=_cmd_train)
@@ -181,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--policy", help="actor file (actor.pt or checkpoint dir's actor.pt), "
                    "'scripted' for the straight-line baseline; default: the shipped policy")
     p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=int, default=500)
+    p.add_argument("--episodes", type=positive_int, default=500)
     p.add_argument("--seed", type=int, default=1_000_000_000, help="first episode seed")
     p.add_argument("--json", help="write the summary as JSON here")
     p.set_defaults(func=_cmd_eval)

@@ -41,6 +41,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bus.task import TASK
+from skyloop.argtypes import positive_int
+
 # The lines the nodes print (sitl.node / policy.node; not imported: --help stays light).
 EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "
@@ -308,11 +311,12 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p = sub.add_parser("up", help="run the whole stack (sim, perception, policy, bridge, "
                                   "[record], [router]) for N episodes")
     p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=int, default=None,
+    p.add_argument("--episodes", type=positive_int, default=None,
                    help="episodes (default 5; --policy none / --goals gcs: goals, default "
                         "until stopped)")
     p.add_argument("--seed", type=int, default=1000, help="episode i uses seed + i")
-    p.add_argument("--max-steps", type=int, default=300, help="episode timeout (env: 300)")
+    p.add_argument("--max-steps", type=positive_int, default=TASK.max_steps,
+                   help="episode timeout in control steps (default: %(default)s, bus.task)")
     p.add_argument("--goals", choices=("seeded", "gcs"), default="seeded",
                    help="seeded: episodes from --seed (default); gcs: the policy flies "
                         "toward goals from a ground station (missions, reposition) and "

@@ -14,6 +14,9 @@ import threading
 from dataclasses import replace
 from typing import Any
 
+from bus.task import TASK
+from skyloop.argtypes import nonnegative_int, positive_int
+
 MAVLINK_DEFAULTS = {"api_port": 14540, "api_local_port": 14580, "gcs_port": 14550,
                     "gcs_local_port": 18570}
 
@@ -246,7 +249,7 @@ def add_stack_commands(sub: Any) -> None:
     _zenoh_args(p)
     _clock_args(p)
     p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=int, default=1,
+    p.add_argument("--episodes", type=nonnegative_int, default=1,
                    help="episodes to run (--free-flight: goals to reach, 0: until stopped)")
     p.add_argument("--free-flight", action="store_true",
                    help="no seeded placements: wait on the ground for a ground station; "
@@ -262,7 +265,8 @@ def add_stack_commands(sub: Any) -> None:
                    help="lockstep: wall seconds to wait for a step's command in OFFBOARD "
                         "before flying without it (default 2)")
     p.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")
-    p.add_argument("--max-steps", type=int, default=300, help="timeout (env: 300)")
+    p.add_argument("--max-steps", type=positive_int, default=TASK.max_steps,
+                   help="timeout in control steps (default: %(default)s, bus.task)")
     p.add_argument("--wait-go", action="store_true",
                    help="after warming up, print SKYLOOP-SIM-READY and wait for a stdin line")
     p.set_defaults(func=cmd_sim)

@@ -12,6 +12,18 @@ def skyloop(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
                           text=True, timeout=timeout)
 
 
+def test_one_version_for_the_command_and_the_vehicle():
+    from importlib.metadata import version
+
+    from mavlink_bridge.autopilot_version import autopilot_version
+
+    out = skyloop("--version")
+    assert out.returncode == 0 and out.stdout.strip() == f"skyloop {version('skyloop')}"
+    sw = autopilot_version(1).flight_sw_version  # PX4 packing: major.minor.patch.type
+    packed = ".".join(str(sw >> shift & 0xFF) for shift in (24, 16, 8))
+    assert packed == ".".join(version("skyloop").split(".")[:3])
+
+
 def test_help_lists_the_subcommands():
     out = skyloop("--help")
     assert out.returncode == 0
@@ -79,3 +91,14 @@ def test_security_flags_reach_bridge_and_policy(tmp_path):
     key.write_text("")
     out = skyloop("bridge", "--signing-key-file", str(key), timeout=60)
     assert out.returncode != 0 and "Traceback" not in out.stderr, out.stderr
+
+
+def test_bad_counts_are_refused_before_anything_starts():
+    for args, flag in ((("up", "--episodes", "-1"), "--episodes"),
+                       (("eval", "--episodes", "-1"), "--episodes"),
+                       (("train", "--episodes", "0", "--out", "unused"), "--episodes"),
+                       (("train", "--envs", "x", "--out", "unused"), "--envs"),
+                       (("sim", "--max-steps", "0"), "--max-steps")):
+        out = skyloop(*args, timeout=60)
+        assert out.returncode == 2, args
+        assert f"argument {flag}:" in out.stderr and "Traceback" not in out.stderr, args

@@ -266,6 +266,28 @@ def test_state_dict_roundtrip(cls, cfg_cls):
     assert restored.updates == agent.updates == 7
 
 
+def test_actor_file_records_its_task_and_refuses_another(tmp_path):
+    from dataclasses import replace
+
+    from bus.task import TASK
+    from policy.evaluate import ActorController
+
+    agent = TD3(TD3Config())
+    agent.save_actor(tmp_path / "old.pt")  # no task recorded: taken as it is
+    load_actor(tmp_path / "old.pt", task=TASK)
+    agent.task = TASK.to_dict()
+    agent.save_actor(tmp_path / "ok.pt")
+    assert torch.load(tmp_path / "ok.pt", weights_only=True)["task"]["frames"] == 3
+    ActorController(tmp_path / "ok.pt")
+    load_actor(tmp_path / "ok.pt", task=replace(TASK, max_steps=50))  # limits may differ
+    agent.task = replace(TASK, max_action=1.0).to_dict()
+    agent.save_actor(tmp_path / "other.pt")
+    with pytest.raises(ValueError, match=r"other.pt: trained for task max_action=1.0, but "
+                                         r"this task has max_action=2.0"):
+        ActorController(tmp_path / "other.pt")
+    load_actor(tmp_path / "other.pt")  # without a task to check (a Gymnasium task)
+
+
 def test_save_and_load_actor(tmp_path):
     agent = TD3(TD3Config(**TINY, seed=2))
     agent.update(_batch())

@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from bus.task import episode_outcome
 from policy.plots import CSV_NAME  # importing it selects matplotlib's Agg backend
 from policy.rollout import EpisodeResult, summarize
 from policy.train import ACTOR, RESULT, REWARD_TERMS, WINDOW, TrainConfig, finished
@@ -386,8 +387,7 @@ def _evaluate_gym(actor: Path, config: TrainConfig, episodes: int) -> dict:
                 steps += 1
                 if terminated or truncated:
                     break
-            outcome = ("success" if info["goal_reached"] else
-                       "collision" if info["collision"] else "timeout")
+            outcome = episode_outcome(info["goal_reached"], info["collision"])
             none = np.zeros((0, 3))
             results.append(EpisodeResult(EVAL_SEED + i, outcome, steps, total, 0.0,
                                          none, none, none))

@@ -1,0 +1,65 @@
+"""The task specification (bus.task): outcome rules, serialisation, and that the parts
+built from it agree with it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bus.task import TASK, TaskSpec, episode_outcome
+
+
+@pytest.mark.parametrize("collided,distance,altitude,steps,expected", [
+    (True, 0.5, 3.0, 10, "collision"),  # a collision wins over a reached goal
+    (False, 2.0, 6.0, 10, "success"),  # on the radius and the altitude limit
+    (False, 1.0, 6.5, 10, "None"),  # above the goal altitude: not yet
+    (False, 2.01, 3.0, 299, "None"),
+    (False, 2.01, 3.0, 300, "timeout"),
+    (False, 1.0, 3.0, 300, "success"),  # success on the last step is success
+])
+def test_outcome_rules(collided, distance, altitude, steps, expected):
+    assert str(TASK.outcome(collided, distance, altitude, steps)) == expected
+
+
+def test_limits_are_the_spec_fields():
+    task = replace(TASK, max_steps=4, goal_radius=5.0)
+    assert task.outcome(False, 4.5, 3.0, 3) == "success"
+    assert task.outcome(False, 9.0, 3.0, 4) == "timeout"
+    assert TASK.obs_dim == 35 and TASK.state_shape == (3, 35) and TASK.state_dim == 105
+
+
+def test_episode_outcome():
+    assert episode_outcome(True, False) == "success"
+    assert episode_outcome(False, True) == "collision"
+    assert episode_outcome(False, False) == "timeout"
+
+
+def test_round_trip_and_bad_fields():
+    spec = replace(TASK, frames=4, max_action=1.5)
+    assert TaskSpec.from_dict(spec.to_dict()) == spec
+    with pytest.raises(ValueError, match="actor.pt: unknown task field 'fps'"):
+        TaskSpec.from_dict({"fps": 3}, where="actor.pt")
+    with pytest.raises(ValueError, match="task field 'frames' must be a number"):
+        TaskSpec.from_dict({"frames": "3"})
+
+
+def test_env_networks_and_replay_take_their_sizes_from_the_spec():
+    from policy.env import UavNavEnv
+    from policy.replay import ReplayBuffer
+    from policy.td3 import TD3Config
+
+    env = UavNavEnv(scenario="valley")
+    try:
+        assert env.observation_space.shape == TASK.state_shape
+        assert env.action_space.shape == (TASK.action_dim,)
+        assert float(env.action_space.high[0]) == TASK.max_action
+        state, _ = env.reset(seed=1)
+        assert state.shape == TASK.state_shape and state.dtype == np.float32
+    finally:
+        env.close()
+    cfg = TD3Config()
+    assert (cfg.state_dim, cfg.action_dim, cfg.max_action) == (
+        TASK.state_dim, TASK.action_dim, TASK.max_action)
+    assert ReplayBuffer(10).state_shape == TASK.state_shape
