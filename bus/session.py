@@ -112,6 +112,16 @@ class SessionConfig:
             changes["hub"] = env[ENV_HUB].strip()
         return replace(cfg, **changes) if changes else cfg
 
+    @classmethod
+    def from_flags(cls, mode: str | None = None, connect: str | None = None,
+                   listen: str | None = None) -> SessionConfig:
+        """``from_env`` with the command-line flags ``--mode/--connect/--listen`` (those
+        given) winning over the environment."""
+        cfg = cls.from_env()
+        overrides = {k: v for k, v in (("mode", mode), ("connect", connect),
+                                       ("listen", listen)) if v is not None}
+        return replace(cfg, **overrides) if overrides else cfg
+
     @property
     def uses_hub(self) -> bool:
         """True when :func:`open_session` runs the hub election (peer, no endpoints)."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import signal
 import sys
 import threading
@@ -69,8 +70,9 @@ class LearnerConfig:
 
 
 def cmd_learner(args: argparse.Namespace) -> int:
+    from bus.node import Bus
+    from bus.session import SessionConfig
     from policy.learner_node import Learner
-    from skyloop.stack_cli import _open_bus
 
     config = LearnerConfig(
         vehicles=args.vehicles, algo=args.algo, reward=args.reward, seed=args.seed,
@@ -84,7 +86,9 @@ def cmd_learner(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    bus = _open_bus(args)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    bus = Bus.open(SessionConfig.from_flags(args.mode, args.connect, args.listen))
     try:
         learner = Learner(bus, config, Path(args.out),
                           emit=lambda line: print(line, flush=True))

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -53,12 +53,12 @@ class StepLoop:
 
     def __init__(self, bus: Bus, config: SimNodeConfig) -> None:
         self.bus = bus
-        self.config = c = config
-        c.episode.scenario = c.scenario
-        c.free_flight = c.free_flight or c.goals_from_bus
-        if c.free_flight and not c.realtime:  # nothing answers steps for a ground station
+        # the run's own copy with the derived settings; the caller's config stays as given
+        free = config.free_flight or config.goals_from_bus
+        if free and not config.realtime:  # nothing answers steps for a ground station
             log.info("free flight runs in real time")
-            c.realtime = True
+        self.config = c = replace(config, free_flight=free, realtime=config.realtime or free,
+                                  episode=replace(config.episode, scenario=config.scenario))
         self.sim = EpisodeSim(c.episode)
         self.period_ns = round(self.sim.vehicle.config.control_period * 1e9)
         self.period = self.period_ns / 1e9

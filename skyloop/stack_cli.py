@@ -11,7 +11,6 @@ import logging
 import signal
 import sys
 import threading
-from dataclasses import replace
 from typing import Any
 
 from bus.task import TASK
@@ -45,10 +44,7 @@ def _open_bus(args: argparse.Namespace) -> Any:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s",
                         stream=sys.stderr)
-    cfg = SessionConfig.from_env()
-    overrides = {k: v for k, v in (("mode", args.mode), ("connect", args.connect),
-                                   ("listen", args.listen)) if v is not None}
-    return Bus.open(replace(cfg, **overrides) if overrides else cfg)
+    return Bus.open(SessionConfig.from_flags(args.mode, args.connect, args.listen))
 
 
 def _stop_event() -> threading.Event:
@@ -296,7 +292,6 @@ def add_stack_commands(sub: Any) -> None:
     p = sub.add_parser("bridge", help="the vehicle's MAVLink endpoint (commands go to "
                                       "the sim's commander over the bus)")
     _zenoh_args(p)
-    _clock_args(p)
     p.add_argument("--bind", default="127.0.0.1", help="local address of both links")
     p.add_argument("--api-host", default="127.0.0.1", help="where the offboard client is")
     p.add_argument("--api-port", type=int, default=MAVLINK_DEFAULTS["api_port"])
@@ -308,8 +303,6 @@ def add_stack_commands(sub: Any) -> None:
     p.add_argument("--command-timeout", type=float, default=1.0,
                    help="seconds to wait for the sim's answer to a command (then "
                         "TEMPORARILY_REJECTED)")
-    p.add_argument("--scenario", default=None,
-                   help="unused (the land detector moved into the sim); kept for old scripts")
     p.add_argument("--params-file", default="auto", metavar="PATH|auto|none",
                    help="where ground-station parameter changes persist (auto: "
                         "$XDG_STATE_HOME/skyloop/params-sys<id>.json; none: memory only)")

@@ -172,3 +172,19 @@ def test_offboard_request_served_right_behind_its_setpoint() -> None:
     finally:
         sim_bus.close()
         bus.close()
+
+
+def test_the_node_leaves_its_callers_config_as_given() -> None:
+    """Goals from the bus imply free flight in real time: the node derives that for itself
+    and does not rewrite the config it was given (a caller may reuse it)."""
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    sim_bus = Bus.open(cfg)
+    try:
+        given = SimNodeConfig(goals_from_bus=True, scenario="forest")
+        node = SimNode(sim_bus, given)
+        assert node.config.free_flight and node.config.realtime
+        assert node.config.episode.scenario == "forest"
+        assert not given.free_flight and not given.realtime
+        assert given.episode.scenario == SimNodeConfig().episode.scenario
+    finally:
+        sim_bus.close()
