@@ -117,6 +117,22 @@ def key(vehicle: str, topic: str, *, wildcard: bool = False) -> str:
     return f"{PREFIX}/{vehicle}/{topic}"
 
 
+#: Readiness is not a topic: a node that is up holds the Zenoh liveliness token
+#: ``skyloop/<vehicle>/ready/<node>`` (gone when it closes or dies).
+READY = "ready"
+#: the vehicle part of a readiness key of a node that serves every vehicle (a recorder)
+ANY_VEHICLE = "_"
+_NODE_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+def ready_key(vehicle: str, node: str = "*") -> str:
+    """Key of node ``node``'s readiness token (``node='*'``: every node's, to watch)."""
+    check_vehicle(vehicle, wildcard=True)
+    if node != "*" and not _NODE_RE.match(node):
+        raise ValueError(f"bad node name {node!r}")
+    return f"{PREFIX}/{vehicle}/{READY}/{node}"
+
+
 def key_all(vehicle: str | None = None) -> str:
     """Key expression of every topic: of one vehicle, or of all (``skyloop/**``)."""
     if vehicle is None:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
-from bus.keys import key, topic_info
+from bus.keys import key, ready_key, topic_info
 from bus.messages import decode, encode
 
 if TYPE_CHECKING:
@@ -281,6 +281,43 @@ class Queryable:
             q.undeclare()
 
 
+class ReadyToken:
+    """A node's readiness: a Zenoh liveliness token, gone on ``close`` (or death)."""
+
+    def __init__(self, session: zenoh.Session, vehicle: str, node: str) -> None:
+        self.key = ready_key(vehicle, node)
+        self._token: Any = session.liveliness().declare_token(self.key)
+
+    def close(self) -> None:
+        token, self._token = self._token, None
+        if token is not None:
+            token.undeclare()
+
+
+class ReadyWatch:
+    """Calls ``callback(node, alive)`` as nodes of ``vehicle`` become ready (alive=True)
+    or go away (False); tokens declared before the watch started are reported too."""
+
+    def __init__(self, session: zenoh.Session, vehicle: str,
+                 callback: Callable[[str, bool], None]) -> None:
+        self.key = ready_key(vehicle)
+        self._callback = callback
+        self._sub: Any = session.liveliness().declare_subscriber(self.key, self._on_sample,
+                                                                 history=True)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        node = str(sample.key_expr).rsplit("/", 1)[-1]
+        try:
+            self._callback(node, sample.kind == zenoh.SampleKind.PUT)
+        except Exception:  # noqa: BLE001 - a callback error must not kill Zenoh's thread
+            log.exception("readiness callback failed for %s", node)
+
+    def close(self) -> None:
+        sub, self._sub = self._sub, None
+        if sub is not None:
+            sub.undeclare()
+
+
 class Bus:
     """Typed access to the ``skyloop/<vehicle>/<topic>`` keys over one session.
 
@@ -291,7 +328,7 @@ class Bus:
     def __init__(self, session: zenoh.Session, *, owns_session: bool = False) -> None:
         self.session = session
         self._owns = owns_session
-        self._entities: list[Publisher | Subscription | Inbox | Queryable] = []
+        self._entities: list[Any] = []  # publishers, subscriptions, tokens ...
         self._closed = False
 
     @classmethod
@@ -328,6 +365,17 @@ class Bus:
         self._check_open()
         return self._track(Inbox(self.session, topic, vehicle, maxsize,
                                  with_vehicle=with_vehicle))
+
+    def declare_ready(self, vehicle: str, node: str) -> ReadyToken:
+        """Tell the launcher (and anyone watching) that ``node`` of ``vehicle`` is ready:
+        a liveliness token that lasts until :meth:`close` or the process dies."""
+        self._check_open()
+        return self._track(ReadyToken(self.session, vehicle, node))
+
+    def watch_ready(self, vehicle: str, callback: Callable[[str, bool], None]) -> ReadyWatch:
+        """Watch the readiness tokens of ``vehicle``'s nodes (:class:`ReadyWatch`)."""
+        self._check_open()
+        return self._track(ReadyWatch(self.session, vehicle, callback))
 
     def queryable(self, topic: str, vehicle: str) -> Queryable:
         """Declare a :class:`Queryable` (requests on ``topic`` of ``vehicle``)."""

@@ -233,6 +233,8 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
         writer = EpisodeLogWriter(out_dir, run_name, compression=compression,
                                   metadata={"vehicle": vehicle or "*"})
         recorder = Recorder(session, writer, vehicle, queue_size=queue_size)
+        token = session.liveliness().declare_token(  # what the launcher waits on
+            keys.ready_key(vehicle or keys.ANY_VEHICLE, "record"))
         log.info("recording %s into %s", recorder.key_expr, writer.path)
         if ready is not None:
             ready.set()
@@ -242,6 +244,7 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
         except KeyboardInterrupt:
             pass
         counters = recorder.stop()
+        token.undeclare()
     finally:
         session.close()
     return RecordResult(writer.dir, counters)

@@ -209,6 +209,7 @@ class SimNode(StepLoop):
         self._place_on_ground(s.start)  # episode 0's start; its goal is free flight's
         self.service.publish_status(self._stamp(), self.now(), force=True)
         if go is not None:
+            self.bus.declare_ready(c.vehicle, "sim")  # what the launcher waits on
             emit(READY_LINE)
         self.ground_phase(go)
         self.wait_subscribers()

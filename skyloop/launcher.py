@@ -11,8 +11,10 @@ Start: [router, until it listens], then every node at once; the sim warms up and
 its ground phase (the vehicle on the ground, its commander answering requests) until
 "go" on its stdin, which it gets once [record] subscribed and the policy reported
 OFFBOARD (arm, takeoff and offboard done the MAVSDK way, through the bridge to the sim's
-commander); then it runs the episodes. In lockstep every episode is the same as in the
-in-process env. ``--policy none``: no policy process; the sim runs free flight in real
+commander); then it runs the episodes. Readiness comes over the bus, not stdout: each of
+those nodes declares the Zenoh liveliness token ``skyloop/<vehicle>/ready/<node>`` when
+ready (``bus.node.Bus.declare_ready``), and the launcher's own session watches them.
+In lockstep every episode is the same as in the in-process env. ``--policy none``: no policy process; the sim runs free flight in real
 time (the vehicle waits on the ground, disarmed, for a ground station; an episode is one
 goal), until stopped or ``--episodes`` goals (default: until stopped). ``--goals gcs``:
 the policy takes off and flies OFFBOARD as usual, but the sim runs free flight in real
@@ -41,10 +43,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from bus.node import Bus
+from bus.session import SessionConfig
 from bus.task import TASK
 from skyloop.argtypes import positive_int
 
-# The lines the nodes print (sitl.node / policy.node; not imported: --help stays light).
+# The lines the nodes print (sitl.node / policy.node; not imported: --help stays light);
+# the READY lines are for people reading the output: readiness comes over the bus.
 EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "
 READY_LINE = "SKYLOOP-POLICY-READY"
@@ -122,14 +127,14 @@ class Graph:
                       f"{r['steps']} steps, path {r['path_length']:.1f} m", flush=True)
             elif line.startswith(SUMMARY_LINE):
                 self.summary = json.loads(line[len(SUMMARY_LINE):])
-            elif line.startswith(READY_LINE):
-                self.ready["policy"].set()
-            elif line.startswith(SIM_READY_LINE):
-                self.ready["sim"].set()
-            elif child.name == "record" and "recording" in line:
-                self.ready["record"].set()
             elif child.name == "record" and line.startswith("recorded "):
                 self.log_path = line.rsplit(" into ", 1)[-1].split(";")[0]
+
+    def on_ready(self, node: str, alive: bool) -> None:
+        """A node's readiness token appeared (or went): the bus, not its stdout, says
+        when it is ready (``bus.node.Bus.declare_ready``)."""
+        if alive and node in self.ready:
+            self.ready[node].set()
 
     def dead(self, exclude: str | None = None) -> Child | None:
         """The first child (other than ``exclude``) that has exited, if any."""
@@ -215,6 +220,7 @@ def run_up(args: argparse.Namespace) -> int:
     graph = Graph(env, args.verbose)
     nodes = _node_args(args, ports)
     t0 = time.monotonic()
+    bus: Bus | None = None
     try:
         if args.router:
             env.update(SKYLOOP_ZENOH_MODE="client", SKYLOOP_ZENOH_CONNECT=endpoint)
@@ -225,6 +231,10 @@ def run_up(args: argparse.Namespace) -> int:
         else:
             env.update(SKYLOOP_ZENOH_MODE="peer", SKYLOOP_ZENOH_HUB=endpoint)
             env.pop("SKYLOOP_ZENOH_CONNECT", None)
+        # The launcher watches the nodes' readiness tokens on the bus (in peer mode it
+        # opens first, so it holds the hub every node joins, for as long as they run).
+        bus = Bus.open(SessionConfig.from_env(env))
+        bus.watch_ready("*", graph.on_ready)
         # Everything starts at once (imports take seconds); the sim warms up, then waits
         # for "go" until the recorder subscribed and the policy is in OFFBOARD.
         if args.log_dir:
@@ -257,6 +267,9 @@ def run_up(args: argparse.Namespace) -> int:
         graph.stop()
         print(f"skyloop up: {err}", file=sys.stderr, flush=True)
         return 1
+    finally:  # every return above stopped the nodes first
+        if bus is not None:
+            bus.close()
     summary = _summary(graph, args, time.monotonic() - t0)
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)

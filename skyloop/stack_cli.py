@@ -180,6 +180,7 @@ def cmd_policy(args: argparse.Namespace) -> int:
                       lockstep=not args.realtime, weights=weights, hold=args.hold)
     try:
         node.start(args.takeoff_altitude)
+        bus.declare_ready(args.vehicle, "policy")  # what the launcher waits on
         print(READY_LINE, flush=True)
         node.run(stop.is_set)
     finally:

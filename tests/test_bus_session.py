@@ -217,3 +217,25 @@ def test_session_config_from_env():
         SessionConfig.from_env({"SKYLOOP_ZENOH_MODE": "bogus"})
     with pytest.raises(ValueError):
         SessionConfig(mode="client", listen=("tcp/127.0.0.1:1",))
+
+
+def test_readiness_tokens_come_and_go(hub_cfg, buses):
+    """A node's readiness is a liveliness token: a watcher sees the ones declared before
+    it started (history) and after, and sees a node go when its bus closes."""
+    watcher, early, late = buses(hub_cfg), Bus.open(hub_cfg), Bus.open(hub_cfg)
+    seen: list[tuple[str, bool]] = []
+    try:
+        early.declare_ready("uav1", "record")
+        watcher.watch_ready("*", lambda node, alive: seen.append((node, alive)))
+        wait_for(lambda: ("record", True) in seen, what="the token declared before")
+        late.declare_ready("uav1", "sim")
+        wait_for(lambda: ("sim", True) in seen, what="the token declared after")
+        late.close()
+        wait_for(lambda: ("sim", False) in seen, what="the node gone")
+        assert ("record", False) not in seen
+        with pytest.raises(ValueError, match="node name"):
+            early.declare_ready("uav1", "Bad/Name")
+    finally:
+        early.close()
+        late.close()
+    assert keys.ready_key("uav1", "sim") == "skyloop/uav1/ready/sim"

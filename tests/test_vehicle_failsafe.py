@@ -60,6 +60,7 @@ def flying():
     udp = [free_port(socket.SOCK_DGRAM) for _ in range(3)]
     graph = Graph(env)
     bus = Bus.open(SessionConfig(hub=hub))
+    bus.watch_ready("*", graph.on_ready)  # the nodes' readiness tokens, as skyloop up
     status = StatusLog(bus)
     clocks: list[int] = []
     bus.subscribe(keys.CLOCK, "uav1", lambda msg: clocks.append(int(msg.step)))
