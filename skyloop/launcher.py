@@ -14,8 +14,8 @@ OFFBOARD (arm, takeoff and offboard done the MAVSDK way, through the bridge to t
 commander); then it runs the episodes. Readiness comes over the bus, not stdout: each of
 those nodes declares the Zenoh liveliness token ``skyloop/<vehicle>/ready/<node>`` when
 ready (``bus.node.Bus.declare_ready``), and the launcher's own session watches them.
-In lockstep every episode is the same as in the in-process env. ``--policy none``: no policy process; the sim runs free flight in real
-time (the vehicle waits on the ground, disarmed, for a ground station; an episode is one
+In lockstep every episode is the same as in the in-process env. ``--policy none``: no
+policy process; the sim runs free flight in real time (the vehicle waits on the ground, disarmed, for a ground station; an episode is one
 goal), until stopped or ``--episodes`` goals (default: until stopped). ``--goals gcs``:
 the policy takes off and flies OFFBOARD as usual, but the sim runs free flight in real
 time with goals from the bus only (``sim --goals-from-bus``): a ground station's mission
