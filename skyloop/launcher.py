@@ -7,25 +7,24 @@ joined through a hub endpoint on a free port (``SKYLOOP_ZENOH_HUB``, so two stac
 one machine do not meet); ``--router`` starts ``skyloop router`` and puts every node in
 client mode.
 
-Start: [router, until it listens], then every node at once; the sim warms up and flies
-its ground phase (the vehicle on the ground, its commander answering requests) until
-"go" on its stdin, which it gets once [record] subscribed and the policy reported
-OFFBOARD (arm, takeoff and offboard done the MAVSDK way, through the bridge to the sim's
-commander); then it runs the episodes. Readiness comes over the bus, not stdout: each of
-those nodes declares the Zenoh liveliness token ``skyloop/<vehicle>/ready/<node>`` when
-ready (``bus.node.Bus.declare_ready``), and the launcher's own session watches them.
-In lockstep every episode is the same as in the in-process env. ``--policy none``: no
-policy process; the sim runs free flight in real time (the vehicle waits on the ground, disarmed, for a ground station; an episode is one
-goal), until stopped or ``--episodes`` goals (default: until stopped). ``--goals gcs``:
-the policy takes off and flies OFFBOARD as usual, but the sim runs free flight in real
-time with goals from the bus only (``sim --goals-from-bus``): a ground station's mission
-or reposition gives them (``mavlink_bridge.goals``), and between goals the policy hovers
-(``policy --hold``); until stopped by default. ``--param
+Start: [router, until it listens], then every node at once; the sim warms up and flies its
+ground phase (the vehicle on the ground, its commander answering requests) until "go" on its
+stdin, which it gets once [record] subscribed and the policy reported OFFBOARD (arm, takeoff
+and offboard done the MAVSDK way, through the bridge to the sim's commander); then it runs
+the episodes. Readiness comes over the bus, not stdout: each of those nodes declares the
+Zenoh liveliness token ``skyloop/<vehicle>/ready/<node>`` when ready
+(``bus.node.Bus.declare_ready``), and the launcher's own session watches them. In lockstep
+every episode is the same as in the in-process env. ``--policy none``: no policy process;
+the sim runs free flight in real time (the vehicle waits on the ground, disarmed, for a
+ground station; an episode is one goal), until stopped or ``--episodes`` goals (default:
+until stopped). ``--goals gcs``: the policy takes off and flies OFFBOARD as usual, but the
+sim runs free flight in real time with goals from the bus only (``sim --goals-from-bus``): a
+ground station's mission or reposition gives them (``mavlink_bridge.goals``), and between
+goals the policy hovers (``policy --hold``); until stopped by default. ``--param
 NAME=VALUE`` goes to the sim (``bus/params.py``). When the sim finishes, the others get
-SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period. If any
-child dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits
-non-zero, naming the node that died and its last log line.
-"""
+SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period. If any child
+dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits non-zero,
+naming the node that died and its last log line."""
 
 from __future__ import annotations
 
