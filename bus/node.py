@@ -419,17 +419,27 @@ class Bus:
         return total
 
     def close(self) -> None:
-        """Undeclare every subscriber and publisher, then close an owned session."""
+        """Undeclare every subscriber and publisher, then close an owned session.
+
+        Everything is undeclared even if Ctrl-C (``KeyboardInterrupt``) or SIGTERM lands in
+        the middle: zenoh-python runs callback subscribers on non-daemon threads, so one
+        left declared would keep the process alive. The interrupt is raised again after.
+        """
         if self._closed:
             return
         self._closed = True
+        interrupted: BaseException | None = None
         for ent in reversed(self._entities):
             try:
                 ent.close()
             except Exception:  # noqa: BLE001 - keep closing the rest
                 log.warning("undeclaring %s failed", getattr(ent, "key", ent), exc_info=True)
+            except BaseException as exc:  # noqa: BLE001 - Ctrl-C: finish, then re-raise
+                interrupted = interrupted or exc
         if self._owns:
             self.session.close()
+        if interrupted is not None:
+            raise interrupted
 
     def __enter__(self) -> Bus:
         return self

@@ -201,8 +201,24 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
     }
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGTERM (``docker stop``, systemd) stops the graph as Ctrl-C does."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_stopped(signum: int, frame: Any) -> None:
+    raise Stopped(signum)
+
+
 def run_up(args: argparse.Namespace) -> int:
-    """Run the graph (see the module docstring); returns the exit code."""
+    """Run the graph (see the module docstring); returns the exit code: 0 when the
+    episodes finished, 1 when a node died or was not ready in time, 128 + the signal on
+    Ctrl-C (130) or SIGTERM (143), after stopping every node and printing the summary of
+    the episodes flown so far."""
+    signal.signal(signal.SIGTERM, _raise_stopped)
     gcs = args.policy == "none" or args.goals == "gcs"
     if gcs and not args.realtime:
         print("--policy none / --goals gcs: free flight for a ground station, running "
@@ -258,10 +274,17 @@ def run_up(args: argparse.Namespace) -> int:
         if sim.proc.returncode != 0 or graph.summary is None:
             return _died(graph, sim)
         graph.stop()
-    except KeyboardInterrupt:
-        print("interrupted: stopping every node", file=sys.stderr, flush=True)
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
+        print(f"{signal.Signals(signum).name}: stopping every node", file=sys.stderr,
+              flush=True)
         graph.stop()
-        return 130
+        if graph.summary is not None:
+            _summary(graph, args, time.monotonic() - t0)
+        else:
+            print(f"summary: {len(graph.episodes)} episodes finished before the stop",
+                  flush=True)
+        return 128 + signum
     except TimeoutError as err:
         graph.stop()
         print(f"skyloop up: {err}", file=sys.stderr, flush=True)

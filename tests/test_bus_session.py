@@ -239,3 +239,19 @@ def test_readiness_tokens_come_and_go(hub_cfg, buses):
         early.close()
         late.close()
     assert keys.ready_key("uav1", "sim") == "skyloop/uav1/ready/sim"
+
+
+def test_close_undeclares_everything_through_a_ctrl_c(hub_cfg):
+    """A KeyboardInterrupt while closing one entity still undeclares the others (their
+    callback threads would keep the process alive) and is raised again afterwards."""
+    bus = Bus.open(hub_cfg)
+    sub = bus.subscribe(keys.EPISODE, "uav1", lambda msg: None)
+
+    class Interrupted:
+        def close(self) -> None:
+            raise KeyboardInterrupt
+
+    bus._track(Interrupted())  # closed first (reverse order), then the subscription
+    with pytest.raises(KeyboardInterrupt):
+        bus.close()
+    assert sub._sub is None  # undeclared all the same

@@ -194,14 +194,17 @@ def test_child_death_stops_the_graph():
             proc.kill()
 
 
-def test_ctrl_c_stops_the_graph():
+@pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
+                         ids=["ctrl-c", "sigterm"])
+def test_a_signal_stops_the_graph_with_a_summary(sig, code):
     proc, pids = flying_graph()
     try:
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(sig)
         t0 = time.monotonic()
-        proc.communicate(timeout=10)
+        rest = proc.communicate(timeout=10)[0]
         assert time.monotonic() - t0 < 5.0
-        assert proc.returncode == 130
+        assert proc.returncode == code
+        assert "summary: " in rest and "Traceback" not in rest, rest
         assert_all_gone(pids)
     finally:
         if proc.poll() is None:
