@@ -102,6 +102,7 @@ class PolicyNode:
         """Connect, stream a zero setpoint, arm, take off, start offboard."""
         self.controller(self.stacker.state)  # warm up (torch's first call is slow)
         c = self.client
+        log.info("waiting up to %g s for the vehicle's heartbeat", timeout)
         c.wait_heartbeat(timeout)
         c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
         c.arm()

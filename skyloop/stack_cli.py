@@ -164,7 +164,9 @@ def cmd_policy(args: argparse.Namespace) -> int:
 
     torch.set_num_threads(1)
     controller = make_controller(None if args.policy == "shipped" else args.policy)
-    stop = _stop_event()
+    # Until it flies, SIGTERM interrupts whatever start-up waits on (the heartbeat, arming,
+    # the takeoff), as Ctrl-C does; from then on the loop checks ``stop`` every step.
+    _raise_on_term()
     bus = _open_bus(args)
     weights = None
     if args.weights_from_bus:
@@ -179,7 +181,12 @@ def cmd_policy(args: argparse.Namespace) -> int:
     node = PolicyNode(bus, controller, args.vehicle, client_config,
                       lockstep=not args.realtime, weights=weights, hold=args.hold)
     try:
-        node.start(args.takeoff_altitude)
+        try:
+            node.start(args.takeoff_altitude)
+        except KeyboardInterrupt:
+            logging.getLogger("skyloop.policy").info("stopped during start-up")
+            return 0
+        stop = _stop_event()
         bus.declare_ready(args.vehicle, "policy")  # what the launcher waits on
         print(READY_LINE, flush=True)
         node.run(stop.is_set)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 
@@ -102,3 +103,32 @@ def test_bad_counts_are_refused_before_anything_starts():
         out = skyloop(*args, timeout=60)
         assert out.returncode == 2, args
         assert f"argument {flag}:" in out.stderr and "Traceback" not in out.stderr, args
+
+
+def test_policy_stops_on_sigterm_while_waiting_for_the_vehicle():
+    """Start-up (waiting 30 s for a heartbeat that never comes) ends within 2 s of
+    SIGTERM, cleanly."""
+    import os
+    import signal
+    import time
+
+    from loopback import free_port
+
+    port = free_port(socket.SOCK_DGRAM)
+    proc = subprocess.Popen([sys.executable, "-m", "skyloop", "policy", "--policy",
+                             "scripted", "--api-port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    try:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            if "waiting up to" in line and "heartbeat" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        t0 = time.monotonic()
+        err = proc.communicate(timeout=10)[1]
+        assert time.monotonic() - t0 < 2.0
+        assert proc.returncode == 0 and "Traceback" not in err, err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
