@@ -110,8 +110,11 @@ def cmd_perception(args: argparse.Namespace) -> int:
         while not stop.wait(0.2):
             pass
     finally:
+        node.close()  # the worker first: it publishes on the bus
         bus.close()
-        node.close()
+        logging.getLogger("skyloop.perception").info(
+            "published %d observations, dropped %d messages (overload)", node.published,
+            node.dropped)
     return 0
 
 
