@@ -27,20 +27,33 @@ EVAL_SEED = 1_000_000_000
 SHIPPED_POLICY = Path(__file__).resolve().parent / "shipped" / "td3_abr_valley" / "actor.pt"
 
 
+def _torch_error(exc: Exception) -> str:
+    """A short reason from what ``torch.load`` raised: an unpickling failure of a file that
+    is not a torch file at all comes with advice about ``weights_only`` that misleads."""
+    text = str(exc).strip()
+    if "weights_only" in text or "invalid load key" in text or "zip archive" in text:
+        return "not a torch file"
+    return text.splitlines()[0][:200] if text else type(exc).__name__
+
+
 class ActorController:
     """The deterministic actor mu(s) of a trained agent as a controller."""
 
     def __init__(self, path: str | Path) -> None:
         path = Path(path)
+        if path.is_dir():  # a training run's directory: its actor
+            if not (path / "actor.pt").is_file():
+                raise FileNotFoundError(f"{path}: a directory without an actor.pt")
+            path = path / "actor.pt"
         if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such policy file")
+            raise FileNotFoundError(f"{path}: no such policy file or directory")
         try:
             self.actor = load_actor(path, task=TASK)
         except ValueError:
             raise
         except Exception as exc:  # torch raises many types for a corrupt file
-            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise ValueError(f"{path}: not a readable skyloop actor ({first})") from exc
+            raise ValueError(f"{path}: not a readable skyloop actor "
+                             f"({_torch_error(exc)})") from exc
         shipped = path.resolve() == SHIPPED_POLICY
         self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
 

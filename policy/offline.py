@@ -120,6 +120,8 @@ def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
         except Exception as exc:  # a missing or unreadable file is reported, not fatal
             report.skip(f"unreadable log ({type(exc).__name__}: {exc})")
             continue
+        if not episodes:  # nothing usable in it (not an MCAP file, say): named with its path
+            report.skip(f"{path}: " + ("; ".join(read.errors[:3]) or "no episodes"))
         for _ in range(read.corrupt_chunks):
             report.skip("corrupt chunk")
         for _ in range(read.corrupt_records):

@@ -446,7 +446,15 @@ def load_actor(path: str | Path | BinaryIO, task: TaskSpec | None = None) -> Act
                                  f", but this task has {name}={getattr(task, name)}")
     c = state["config"]
     actor = Actor(c["state_dim"], c["action_dim"], tuple(c["hidden"]), c["max_action"])
-    actor.load_state_dict(state["actor"])
+    try:
+        actor.load_state_dict(state["actor"])
+    except RuntimeError as exc:  # torch's message spans lines; keep the first mismatch
+        detail = next((line.strip() for line in str(exc).splitlines()
+                       if "size mismatch" in line or "Missing" in line
+                       or "Unexpected" in line), str(exc).splitlines()[0])
+        raise ValueError(f"{path}: its weights do not fit the {c['state_dim']}-"
+                         f"{'-'.join(map(str, c['hidden']))}-{c['action_dim']} actor its "
+                         f"config names ({detail})") from None
     actor.eval().requires_grad_(False)
     return actor
 

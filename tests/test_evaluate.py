@@ -45,8 +45,22 @@ def test_bad_policy_files_give_clear_errors(tmp_path):
         ActorController(tmp_path / "missing.pt")
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"\x00garbage")
-    with pytest.raises(ValueError, match="not a readable skyloop actor"):
+    with pytest.raises(ValueError, match=r"not a readable skyloop actor \(not a torch file\)"):
         ActorController(bad)
+    with pytest.raises(FileNotFoundError, match="a directory without an actor.pt"):
+        ActorController(tmp_path)
+    run = tmp_path / "run"
+    run.mkdir()
+    TD3(TD3Config()).save_actor(run / "actor.pt")
+    assert ActorController(run).actor is not None  # a run directory: its actor
+    import torch
+
+    state = torch.load(run / "actor.pt", weights_only=True)
+    state["actor"]["net.0.weight"] = torch.zeros(400, 50)
+    torch.save(state, tmp_path / "shape.pt")
+    with pytest.raises(ValueError, match=r"shape.pt: its weights do not fit the 105-400-300-4 "
+                                         r"actor .*size mismatch for net.0.weight"):
+        ActorController(tmp_path / "shape.pt")
 
 
 @pytest.mark.skipif(not SHIPPED_POLICY.exists(), reason="no shipped policy committed yet")

@@ -81,3 +81,18 @@ def test_train_from_logs_writes_an_actor(logged, tmp_path):
     assert (tmp_path / "run" / "actor.pt").stat().st_size > 100_000
     with pytest.raises(ValueError, match="no usable episodes"):
         train_from_logs([tmp_path / "nothing.mcap"], tmp_path / "run2", updates=1)
+
+
+def test_a_file_that_is_not_a_log_is_named(logged, tmp_path):
+    """Random bytes or an empty file among the logs: named as not an MCAP file, alone
+    (an error) or beside a good log (counted in the summary's skipped, not silent)."""
+    path, _ = logged
+    noise, empty = tmp_path / "noise.mcap", tmp_path / "empty.mcap"
+    noise.write_bytes(np.random.default_rng(0).bytes(5000))
+    empty.write_bytes(b"")
+    for bad in (noise, empty):
+        with pytest.raises(ValueError, match=rf"{bad}: not an MCAP file"):
+            train_from_logs([bad], tmp_path / f"run-{bad.stem}", updates=1)
+    summary = train_from_logs([path, noise], tmp_path / "mixed", updates=1)
+    assert summary["episodes_used"] == EPISODES
+    assert summary["skipped"] == {f"{noise}: not an MCAP file (bad magic)": 1}
