@@ -65,6 +65,15 @@ def _classify(reason: str) -> str:
     return "rx_bad_data"
 
 
+
+class LinkBindError(ValueError):
+    """A link's local UDP address cannot be bound (taken, or not an address here)."""
+
+    def __init__(self, link: str, local: tuple[str, int], cause: OSError) -> None:
+        super().__init__(f"MAVLink link {link!r} cannot listen on UDP {local[0]}:{local[1]}: "
+                         f"{cause.strerror or cause}")
+        self.link, self.local = link, local
+
 class UdpEndpoint:
     """A bound, non-blocking UDP socket speaking MAVLink 2 as ``system_id/component_id``.
 
@@ -85,9 +94,9 @@ class UdpEndpoint:
         try:
             self.sock.setblocking(False)
             self.sock.bind(local)
-        except OSError:
+        except OSError as exc:
             self.sock.close()
-            raise
+            raise LinkBindError(name, local, exc) from None
         self.address: Address = self.sock.getsockname()[:2]
         self.remote = remote
         self.peer: Address | None = remote

@@ -181,8 +181,14 @@ def cmd_policy(args: argparse.Namespace) -> int:
         except ValueError:
             bus.close()
             raise
-    node = PolicyNode(bus, controller, args.vehicle, client_config,
-                      lockstep=not args.realtime, weights=weights, hold=args.hold)
+    from mavlink_bridge.transport import LinkBindError
+
+    try:
+        node = PolicyNode(bus, controller, args.vehicle, client_config,
+                          lockstep=not args.realtime, weights=weights, hold=args.hold)
+    except LinkBindError as err:
+        bus.close()
+        raise ValueError(f"{err} (choose another with --api-port)") from None
     try:
         try:
             node.start(args.takeoff_altitude)
@@ -206,10 +212,17 @@ def cmd_bridge(args: argparse.Namespace) -> int:
 
     link = _config_or_exit(bridge_link_config, args, "bridge")
     overrides = parse_params(args.param)
+    from mavlink_bridge.transport import LinkBindError
+
     stop = _stop_event()
     bus = _open_bus(args)
-    node = BridgeNode(bus, args.vehicle, link, command_timeout_s=args.command_timeout,
-                      param_overrides=overrides)
+    try:
+        node = BridgeNode(bus, args.vehicle, link, command_timeout_s=args.command_timeout,
+                          param_overrides=overrides)
+    except LinkBindError as err:
+        bus.close()
+        flag = {"api": "--api-local-port", "gcs": "--gcs-local-port"}.get(err.link, "")
+        raise ValueError(f"{err} (choose another with {flag})" if flag else str(err)) from None
     logging.getLogger("skyloop.bridge").info(
         "bridge up: api %s -> %s:%d, gcs %s", node.link.address("api"), args.api_host,
         args.api_port, "off" if args.no_gcs else f"-> {args.gcs_host}:{args.gcs_port}")

@@ -132,3 +132,19 @@ def test_policy_stops_on_sigterm_while_waiting_for_the_vehicle():
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_a_taken_mavlink_port_names_the_port_and_the_flag():
+    from loopback import free_port
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        port = free_port(socket.SOCK_DGRAM)
+        taken.bind(("127.0.0.1", port))
+        for args, flag in ((("bridge", "--no-gcs", "--api-local-port", str(port)),
+                            "--api-local-port"),
+                           (("policy", "--policy", "scripted", "--api-port", str(port)),
+                            "--api-port")):
+            out = skyloop(*args, timeout=60)
+            assert out.returncode == 2, out.stderr
+            assert f"127.0.0.1:{port}: Address already in use" in out.stderr, out.stderr
+            assert flag in out.stderr and "Traceback" not in out.stderr
