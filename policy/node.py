@@ -58,6 +58,9 @@ from perception.observation import FrameStacker
 
 log = logging.getLogger("skyloop.policy")
 READY_LINE = "SKYLOOP-POLICY-READY"
+#: non-finite actions in a row after which the node stops (an actor that outputs NaN is
+#: broken: flying on would only time every episode out without saying why)
+MAX_BAD_ACTIONS = 5
 MAX_ACTION = TASK.max_action  # bus.task
 Controller = Callable[[np.ndarray], np.ndarray]
 
@@ -90,6 +93,7 @@ class PolicyNode:
         self.episode: int | None = None
         self.sent = 0
         self.bad_actions = 0
+        self._bad_in_a_row = 0
         self.resend_period = 0.05  # real time, as MAVSDK's 20 Hz
         self._stamp_s: float | None = None
         self._next_resend = math.inf
@@ -173,9 +177,15 @@ class PolicyNode:
         action = np.asarray(self.controller(state), dtype=np.float64).reshape(-1)
         if action.shape != (4,) or not np.all(np.isfinite(action)):
             self.bad_actions += 1
+            self._bad_in_a_row += 1
             log.warning("actor gave %s at episode %d step %d; nothing sent", action, episode,
                         step)
+            if self._bad_in_a_row >= MAX_BAD_ACTIONS:
+                raise ValueError(f"the actor gave {self._bad_in_a_row} non-finite or "
+                                 f"misshapen actions in a row (episode {episode} step {step}, "
+                                 f"{action.tolist()}): not flying it")
             return None
+        self._bad_in_a_row = 0
         action = np.clip(action, -MAX_ACTION, MAX_ACTION).astype(np.float32)
         self._stamp_s = m.seconds(msg.header.stamp)
         self._stamped(lambda: self.client.set_velocity_body(*(float(a) for a in action)))

@@ -246,10 +246,6 @@ def run_up(args: argparse.Namespace) -> int:
         else:
             env.update(SKYLOOP_ZENOH_MODE="peer", SKYLOOP_ZENOH_HUB=endpoint)
             env.pop("SKYLOOP_ZENOH_CONNECT", None)
-        # The launcher watches the nodes' readiness tokens on the bus (in peer mode it
-        # opens first, so it holds the hub every node joins, for as long as they run).
-        bus = Bus.open(SessionConfig.from_env(env))
-        bus.watch_ready("*", graph.on_ready)
         # Everything starts at once (imports take seconds); the sim warms up, then waits
         # for "go" until the recorder subscribed and the policy is in OFFBOARD.
         if args.log_dir:
@@ -259,6 +255,11 @@ def run_up(args: argparse.Namespace) -> int:
         if args.policy != "none":
             graph.start("policy", nodes["policy"])
         sim = graph.start("sim", [*nodes["sim"], "--wait-go"], stdin=subprocess.PIPE)
+        # The launcher watches the nodes' readiness tokens from a session of its own,
+        # opened after the last child started (no fork with a session open); the watch
+        # sees tokens declared before it too.
+        bus = Bus.open(SessionConfig.from_env(env))
+        bus.watch_ready("*", graph.on_ready)
         waits = [("sim", 120.0)] + ([("record", 60.0)] if args.log_dir else []) + \
             ([("policy", 120.0)] if args.policy != "none" else [])
         for name, timeout in waits:

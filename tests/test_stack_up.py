@@ -232,3 +232,21 @@ def test_realtime_run_reports_latency(tmp_path):
     assert 8.0 < s["steps_per_s"] < 11.0  # paced at 10 Hz
     assert 0.0 < s["latency_ms_p50"] <= s["latency_ms_p99"]
     assert "latency p50" in proc.stdout
+
+
+def test_an_actor_that_outputs_nan_stops_the_stack_and_says_why(tmp_path):
+    """Not a silent run of timeouts: the policy refuses after a few non-finite actions,
+    and the launcher exits non-zero naming it."""
+    import torch
+
+    from policy.td3 import TD3, TD3Config
+
+    agent = TD3(TD3Config())
+    with torch.no_grad():
+        agent.actor.net[0].weight.fill_(float("nan"))
+    agent.save_actor(tmp_path / "nan.pt")
+    out = subprocess.run(up_args("--episodes", "1", "--policy", str(tmp_path / "nan.pt")),
+                         cwd=ROOT, capture_output=True, text=True, timeout=180)
+    assert out.returncode == 1, out.stdout + out.stderr
+    assert "node 'policy' exited" in out.stderr and "non-finite" in out.stderr, out.stderr
+    assert "forked after opening" not in out.stdout + out.stderr
