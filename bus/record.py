@@ -29,7 +29,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -262,7 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-name", default=None,
                    help="run directory name (default: run-<date>-<time>-<pid>)")
     p.add_argument("--compression", choices=("none", "zstd", "lz4"), default="none",
-                   help="MCAP chunk compression (default: none)")
+                   help="MCAP chunk compression (default: none: float32 point clouds, most "
+                        "of a log, shrink only ~12%% with zstd: 15 vs 17 MB for 3 episodes)")
     p.add_argument("--queue", type=int, default=512,
                    help="messages buffered between Zenoh and the writer (default: 512)")
     p.add_argument("--mode", choices=("peer", "client", "router"), default=None,
@@ -279,11 +280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    cfg = SessionConfig.from_env()
-    overrides = {k: v for k, v in (("mode", args.mode), ("connect", args.connect),
-                                   ("listen", args.listen)) if v is not None}
-    if overrides:
-        cfg = replace(cfg, **overrides)
+    cfg = SessionConfig.from_flags(args.mode, args.connect, args.listen)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

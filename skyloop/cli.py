@@ -58,6 +58,17 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_log_repair(args: argparse.Namespace) -> int:
+    from bus.log import recover_log
+
+    src = Path(args.path)
+    if not src.exists():
+        raise FileNotFoundError(f"{src}: no such log file or run directory")
+    out, report = recover_log(src, args.out)
+    print(f"repaired: {out} ({report.summary()})")
+    return 0
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from policy.evaluate import evaluate, format_summary
 
@@ -144,6 +155,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="write the results as JSON here")
     p.add_argument("--only", nargs="*", help="run only these benchmark modules")
     p.set_defaults(func=_cmd_bench)
+
+    p = sub.add_parser("log", help="episode logs (MCAP): repair")
+    log_sub = p.add_subparsers(dest="log_command", required=True)
+    r = log_sub.add_parser("repair", help="write an indexed, finished copy of a log whose "
+                                          "writer died (SIGKILL, power loss)")
+    r.add_argument("path", help="the .mcap file or its run directory")
+    r.add_argument("--out", default=None, metavar="DIR",
+                   help="where the copy's run directory goes (default: beside the source "
+                        "run, named <run>-recovered)")
+    r.set_defaults(func=_cmd_log_repair)
 
     p = sub.add_parser("train", help="train TD3/DDPG with a goal reward in the in-process env")
     p.add_argument("--algo", default="td3", help="td3 or ddpg")

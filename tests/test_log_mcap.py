@@ -242,3 +242,28 @@ def test_not_a_log(tmp_path):
         EpisodeLogReader(tmp_path / "d")
     with pytest.raises(FileExistsError):  # one directory per run, never overwritten
         make_run(tmp_path, name="d")
+
+
+def test_log_repair_command_makes_a_killed_log_readable(tmp_path):
+    """`skyloop log repair`: a log cut where its writer died (no summary, no footer)
+    becomes a finished file the indexed mcap reader opens, with every whole episode."""
+    run = make_run(tmp_path, episodes=3, compression="zstd")
+    src = next(run.glob("*.mcap"))
+    data = src.read_bytes()
+    cut = tmp_path / "killed" / "killed_0.mcap"
+    cut.parent.mkdir()
+    cut.write_bytes(data[: int(len(data) * 0.8)])
+    with open(cut, "rb") as f, pytest.raises(Exception):  # noqa: B017 - any mcap error
+        list(make_reader(f).iter_messages())
+    out = subprocess.run([sys.executable, "-m", "skyloop", "log", "repair", str(cut),
+                          "--out", str(tmp_path / "fixed")], capture_output=True, text=True,
+                         cwd=REPO, timeout=120)
+    assert out.returncode == 0, out.stderr
+    fixed = next((tmp_path / "fixed").glob("*/*.mcap"))
+    with open(fixed, "rb") as f:
+        assert sum(1 for _ in make_reader(f).iter_messages()) > 0
+    assert read_episodes(fixed)[1].episodes_complete >= 1
+    missing = subprocess.run([sys.executable, "-m", "skyloop", "log", "repair",
+                              str(tmp_path / "nope.mcap")], capture_output=True, text=True,
+                             cwd=REPO, timeout=120)
+    assert missing.returncode == 2 and "no such log file" in missing.stderr
