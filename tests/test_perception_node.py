@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from loopback import free_port, wait_for
 
 from bus import keys
@@ -12,35 +13,34 @@ from bus.session import Bus, SessionConfig
 from perception.node import PerceptionNode
 
 
-def test_overload_is_dropped_and_counted_not_queued():
+@pytest.fixture
+def node_and_sender():
+    """A perception node with a queue of 8 on one bus, a second bus to publish from."""
     cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
     node_bus, sender = Bus.open(cfg), Bus.open(cfg)
-    try:
-        node = PerceptionNode(node_bus, "uav1", queue_size=8)
-        pub = sender.publisher(keys.LIDAR_POINTS, "uav1")
-        assert pub.wait_matched()
-        node.close()  # the worker stops: nothing drains the queue any more
-        scan = m.pointcloud(np.ones((1000, 3), np.float32), 0.0)
-        for _ in range(100):
-            pub.put(scan)
-        wait_for(lambda: node.dropped >= 92, what="the overflow counted")
-        assert node._q.qsize() == 8  # bounded
-    finally:
-        sender.close()
-        node_bus.close()  # after the node: no publish on a closed publisher
+    node = PerceptionNode(node_bus, "uav1", queue_size=8)
+    yield node, sender
+    node.close()
+    sender.close()
+    node_bus.close()  # after the node: no publish on a closed publisher
 
 
-def test_queue_keeps_what_arrives_in_time():
-    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
-    node_bus, sender = Bus.open(cfg), Bus.open(cfg)
-    try:
-        node = PerceptionNode(node_bus, "uav1", queue_size=8)
-        pub = sender.publisher(keys.PARAMS, "uav1")
-        assert pub.wait_matched()
-        pub.put(m.parameter("SKY_ICO_RADIUS", 3.5))
-        wait_for(lambda: node.config.radius == 3.5, what="the parameter applied")
-        assert node.dropped == 0
-        node.close()
-    finally:
-        sender.close()
-        node_bus.close()
+def test_overload_is_dropped_and_counted_not_queued(node_and_sender):
+    node, sender = node_and_sender
+    pub = sender.publisher(keys.LIDAR_POINTS, "uav1")
+    assert pub.wait_matched()
+    node.close()  # the worker stops: nothing drains the queue any more
+    scan = m.pointcloud(np.ones((1000, 3), np.float32), 0.0)
+    for _ in range(100):
+        pub.put(scan)
+    wait_for(lambda: node.dropped >= 92, what="the overflow counted")
+    assert node._q.qsize() == 8  # bounded
+
+
+def test_queue_keeps_what_arrives_in_time(node_and_sender):
+    node, sender = node_and_sender
+    pub = sender.publisher(keys.PARAMS, "uav1")
+    assert pub.wait_matched()
+    pub.put(m.parameter("SKY_ICO_RADIUS", 3.5))
+    wait_for(lambda: node.config.radius == 3.5, what="the parameter applied")
+    assert node.dropped == 0
