@@ -55,10 +55,11 @@ def _stop_event() -> threading.Event:
 
 
 def _raise_on_term() -> None:
-    def handler(*_: object) -> None:
-        raise KeyboardInterrupt
+    """SIGTERM interrupts the main thread as Ctrl-C does (``skyloop.launcher.Stopped``,
+    so the command exits 143, not 130)."""
+    from skyloop.launcher import _raise_stopped
 
-    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGTERM, _raise_stopped)
 
 
 # ----------------------------------------------------------------------------- nodes
