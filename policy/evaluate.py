@@ -56,7 +56,8 @@ class ActorController:
                              f"({_torch_error(exc)})") from exc
         shipped = path.resolve() == SHIPPED_POLICY
         self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
-        probe = self(np.zeros(TASK.state_shape, np.float32))  # the episode's first state
+        inputs = self.actor.net[0].in_features  # any task's (a Gymnasium env's too)
+        probe = self(np.zeros(inputs, np.float32))  # the all-zero first state
         if not np.all(np.isfinite(probe)):
             raise ValueError(f"{path}: the actor outputs {probe.tolist()} for the "
                              f"all-zero state; its weights are broken (NaN or inf)")

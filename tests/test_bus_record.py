@@ -120,6 +120,10 @@ def test_a_late_step_message_stays_in_its_episode(tmp_path):
         wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()),
                  what="episode 0 received")
         obs.put(m.observation(np.zeros((3, 35), np.float32), 0.3, 0, 3))  # ... then this
+        # received before the next START (two sessions: under load it could otherwise
+        # come after it, which is another case than the one tested here)
+        wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()) + 1,
+                 what="the late observation received")
         run.actor(1)
         run.episode(1, steps=2)
         total = sum(run.sent.values()) + 1
