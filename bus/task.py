@@ -76,6 +76,8 @@ class TaskSpec:
                 raise ValueError(f"{where}: unknown task field {key!r}")
             if not isinstance(value, (int, float)) or isinstance(value, bool):
                 raise ValueError(f"{where}: task field {key!r} must be a number, got {value!r}")
+            if known[key] == "int" and value != int(value):
+                raise ValueError(f"{where}: task field {key!r} must be an integer, got {value!r}")
         return cls(**{k: (int(v) if known[k] == "int" else float(v)) for k, v in data.items()})
 
 

@@ -52,11 +52,15 @@ class PerceptionNode:
         self.pending: dict[int, dict[str, Any]] = {}
         self.published = 0
         self.param_rejects = 0
-        # Bounded: scans offered faster than they are reduced are dropped and counted
-        # (``dropped``), not queued without end (2 GB in 8 s at ~1,400 scans/s, seen).
+        # Bounded: step data (scans, odometry, clock) offered faster than it is reduced is
+        # dropped and counted (``dropped``), not queued without end (2 GB in 8 s at ~1,400
+        # scans/s, seen). Episode events and parameters, rare, are never dropped: a lost
+        # START would lose its episode's goal, a lost parameter an acknowledged change.
         self.dropped = 0
-        self._q: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=queue_size)
+        self.queue_size = int(queue_size)
+        self._q: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._stop = threading.Event()
+        self._count_lock = threading.Lock()
         # Warm up (numba compiles on the first call) before anyone can wait on us.
         observation_from_scan(np.ones((16, 3), np.float32), self.ico, np.zeros(3), 0.0,
                               np.zeros(3), np.ones(3), self.config)
@@ -68,12 +72,16 @@ class PerceptionNode:
 
     def _offer(self, topic: str, msg: Any) -> None:
         """Zenoh's callback: queue the message, or count it dropped if the queue is full."""
-        try:
+        if self._stop.is_set():
+            return  # closing: nothing will handle it
+        if topic in (keys.EPISODE, keys.PARAMS) or self._q.qsize() < self.queue_size:
             self._q.put_nowait((topic, msg))
-        except queue.Full:
+            return
+        with self._count_lock:  # Zenoh calls back from several threads
             self.dropped += 1
-            if self.dropped in (1, 10, 100) or self.dropped % 1000 == 0:
-                log.warning("overloaded: %d messages dropped so far", self.dropped)
+            dropped = self.dropped
+        if dropped in (1, 10, 100) or dropped % 1000 == 0:
+            log.warning("overloaded: %d messages dropped so far", dropped)
 
     def _run(self) -> None:
         while not self._stop.is_set():

@@ -11,13 +11,14 @@ Rates carry 95% Wilson intervals (``policy.rollout``).
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from bus.task import TASK
+from bus.task import TASK, TaskSpec
 from policy.env import UavNavEnv
 from policy.rollout import run_episodes, summarize
 from policy.scripted import StraightLineController
@@ -27,19 +28,22 @@ EVAL_SEED = 1_000_000_000
 SHIPPED_POLICY = Path(__file__).resolve().parent / "shipped" / "td3_abr_valley" / "actor.pt"
 
 
-def _torch_error(exc: Exception) -> str:
-    """A short reason from what ``torch.load`` raised: an unpickling failure of a file that
-    is not a torch file at all comes with advice about ``weights_only`` that misleads."""
-    text = str(exc).strip()
-    if "weights_only" in text or "invalid load key" in text or "zip archive" in text:
+def _torch_error(path: Path, exc: Exception) -> str:
+    """A short reason from what ``torch.load`` raised (its advice about ``weights_only``
+    misleads for a file that is not a torch file at all)."""
+    if not zipfile.is_zipfile(path):
         return "not a torch file"
+    text = str(exc).strip()
+    if "weights_only" in text:
+        return "a torch file, but not an actor (a training checkpoint? use its run's actor.pt)"
     return text.splitlines()[0][:200] if text else type(exc).__name__
 
 
 class ActorController:
     """The deterministic actor mu(s) of a trained agent as a controller."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, task: TaskSpec | None = TASK) -> None:
+        """``task``: the skyloop task it must fly (None: any, e.g. a Gymnasium env's)."""
         path = Path(path)
         if path.is_dir():  # a training run's directory: its actor
             if not (path / "actor.pt").is_file():
@@ -48,15 +52,19 @@ class ActorController:
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such policy file or directory")
         try:
-            self.actor = load_actor(path, task=TASK)
+            self.actor = load_actor(path, task=task)
         except ValueError:
             raise
         except Exception as exc:  # torch raises many types for a corrupt file
             raise ValueError(f"{path}: not a readable skyloop actor "
-                             f"({_torch_error(exc)})") from exc
+                             f"({_torch_error(path, exc)})") from exc
         shipped = path.resolve() == SHIPPED_POLICY
         self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
-        inputs = self.actor.net[0].in_features  # any task's (a Gymnasium env's too)
+        inputs = self.actor.net[0].in_features
+        outputs = self.actor.net[-2].out_features
+        if task is not None and (inputs, outputs) != (task.state_dim, task.action_dim):
+            raise ValueError(f"{path}: an actor for {inputs} inputs and {outputs} actions; "
+                             f"this task has {task.state_dim} and {task.action_dim}")
         probe = self(np.zeros(inputs, np.float32))  # the all-zero first state
         if not np.all(np.isfinite(probe)):
             raise ValueError(f"{path}: the actor outputs {probe.tolist()} for the "

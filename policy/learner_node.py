@@ -103,7 +103,7 @@ class Learner:
         path = SHIPPED_POLICY if init == "shipped" else Path(init)
         if not path.is_file():
             raise FileNotFoundError(f"--init-actor {path}: no such actor file")
-        self.agent.actor.load_state_dict(load_actor(path).state_dict())
+        self.agent.actor.load_state_dict(load_actor(path, task=TASK).state_dict())
         self.agent.actor_target.load_state_dict(self.agent.actor.state_dict())
         log.info("actor initialised from %s", path)
 

@@ -15,7 +15,7 @@ import numpy as np
 from bus import messages as m
 from bus.keys import CMD_VEL, EPISODE, OBSERVATION, TRUTH
 from bus.log import EpisodeLogWriter
-from bus.task import episode_outcome
+from bus.task import TASK, episode_outcome
 from policy.rollout import Controller
 
 NS = 1_000_000_000
@@ -45,7 +45,8 @@ def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_
 
         snapshot(i, 0, 0.0, state[-1])
         while True:
-            action = np.clip(np.asarray(controller(state), np.float32), -2.0, 2.0)
+            action = np.clip(np.asarray(controller(state), np.float32), -TASK.max_action,
+                             TASK.max_action)
             put(CMD_VEL, m.twist_stamped(*(float(a) for a in action), t, frame_id="base_link"),
                 t)
             state, _, terminated, truncated, info = env.step(action)

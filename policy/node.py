@@ -175,7 +175,7 @@ class PolicyNode:
                 self.weights.at_episode_boundary(episode)
         state = self.stacker.push(values)
         action = np.asarray(self.controller(state), dtype=np.float64).reshape(-1)
-        if action.shape != (4,) or not np.all(np.isfinite(action)):
+        if action.shape != (TASK.action_dim,) or not np.all(np.isfinite(action)):
             self.bad_actions += 1
             self._bad_in_a_row += 1
             log.warning("actor gave %s at episode %d step %d; nothing sent", action, episode,

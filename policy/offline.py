@@ -178,7 +178,7 @@ def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: 
     if init_actor is not None:
         from policy.td3 import load_actor
 
-        agent.actor.load_state_dict(load_actor(init_actor).state_dict())
+        agent.actor.load_state_dict(load_actor(init_actor, task=TASK).state_dict())
         agent.actor_target.load_state_dict(agent.actor.state_dict())
     for _ in tqdm(range(updates), unit="upd", desc=f"{summary['algo']}+{reward} from logs"):
         agent.update(buffer.sample(agent.config.batch_size))

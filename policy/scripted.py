@@ -13,16 +13,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bus.task import TASK
 from perception.observation import ObservationConfig
 
 
 @dataclass
 class ScriptedConfig:
-    speed: float = 2.0  # m/s towards the goal, the action limit
+    speed: float = TASK.max_action  # m/s towards the goal, the action limit
     flight_level: float = 3.5  # m, p_approAlt
     altitude_gain: float = 1.0  # 1/s, vz = gain * (flight_level - z)
     yaw_gain: float = 1.5  # 1/s, yaw_rate = gain * heading error
-    max_action: float = 2.0
+    max_action: float = TASK.max_action
 
 
 class StraightLineController:

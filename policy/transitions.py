@@ -64,7 +64,8 @@ def terminal_observation(previous: np.ndarray, pose: Pose, goal: np.ndarray) -> 
     position, velocity, q = pose
     h, g = goal_angles(position, yaw_of(q), velocity, goal)
     out = np.array(previous, np.float32, copy=True)
-    out[32:35] = (position[2] / cfg.altitude_scale, h / cfg.angle_scale, g / cfg.angle_scale)
+    out[TASK.faces:TASK.obs_dim] = (position[2] / cfg.altitude_scale, h / cfg.angle_scale,
+                                    g / cfg.angle_scale)
     return out
 
 

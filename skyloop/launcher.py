@@ -249,7 +249,8 @@ def run_up(args: argparse.Namespace) -> int:
         # Everything starts at once (imports take seconds); the sim warms up, then waits
         # for "go" until the recorder subscribed and the policy is in OFFBOARD.
         if args.log_dir:
-            graph.start("record", ["record", "--out", str(args.log_dir)])
+            graph.start("record", ["record", "--out", str(args.log_dir), "--vehicle",
+                                   args.vehicle])
         for name in ("perception", "bridge"):
             graph.start(name, nodes[name])
         if args.policy != "none":
@@ -259,7 +260,7 @@ def run_up(args: argparse.Namespace) -> int:
         # opened after the last child started (no fork with a session open); the watch
         # sees tokens declared before it too.
         bus = Bus.open(SessionConfig.from_env(env))
-        bus.watch_ready("*", graph.on_ready)
+        bus.watch_ready(args.vehicle, graph.on_ready)  # this stack's vehicle only
         waits = [("sim", 120.0)] + ([("record", 60.0)] if args.log_dir else []) + \
             ([("policy", 120.0)] if args.policy != "none" else [])
         for name, timeout in waits:
@@ -290,6 +291,9 @@ def run_up(args: argparse.Namespace) -> int:
         graph.stop()
         print(f"skyloop up: {err}", file=sys.stderr, flush=True)
         return 1
+    except Exception:  # e.g. the launcher's own Zenoh session failed: no orphans
+        graph.stop()
+        raise
     finally:  # every return above stopped the nodes first
         if bus is not None:
             bus.close()

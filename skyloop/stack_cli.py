@@ -169,33 +169,25 @@ def cmd_policy(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)
     controller = make_controller(None if args.policy == "shipped" else args.policy)
     # Until it flies, SIGTERM interrupts whatever start-up waits on (the heartbeat, arming,
-    # the takeoff), as Ctrl-C does; from then on the loop checks ``stop`` every step.
-    _raise_on_term()
-    bus = _open_bus(args)
-    weights = None
-    if args.weights_from_bus:
-        from policy.weights import WeightsFollower
-
-        try:
-            weights = WeightsFollower(bus, args.vehicle, controller,
-                                      emit=lambda line: print(line, flush=True))
-        except ValueError:
-            bus.close()
-            raise
+    # the takeoff), as Ctrl-C does (main exits 130 or 143, after the ``finally`` below has
+    # closed what was opened); from then on the loop checks ``stop`` every step.
     from mavlink_bridge.transport import LinkBindError
 
+    _raise_on_term()
+    bus = _open_bus(args)
+    weights = node = None
     try:
-        node = PolicyNode(bus, controller, args.vehicle, client_config,
-                          lockstep=not args.realtime, weights=weights, hold=args.hold)
-    except LinkBindError as err:
-        bus.close()
-        raise ValueError(f"{err} (choose another with --api-port)") from None
-    try:
+        if args.weights_from_bus:
+            from policy.weights import WeightsFollower
+
+            weights = WeightsFollower(bus, args.vehicle, controller,
+                                      emit=lambda line: print(line, flush=True))
         try:
-            node.start(args.takeoff_altitude)
-        except KeyboardInterrupt:
-            logging.getLogger("skyloop.policy").info("stopped during start-up")
-            return 0
+            node = PolicyNode(bus, controller, args.vehicle, client_config,
+                              lockstep=not args.realtime, weights=weights, hold=args.hold)
+        except LinkBindError as err:
+            raise ValueError(f"{err} (choose another with --api-port)") from None
+        node.start(args.takeoff_altitude)
         stop = _stop_event()
         bus.declare_ready(args.vehicle, "policy")  # what the launcher waits on
         print(READY_LINE, flush=True)
@@ -204,7 +196,8 @@ def cmd_policy(args: argparse.Namespace) -> int:
         if weights is not None:
             logging.getLogger("skyloop.policy").info("weights: %s", weights.counters())
         bus.close()
-        node.close()
+        if node is not None:
+            node.close()
     return 0
 
 

@@ -29,12 +29,19 @@ def test_overload_is_dropped_and_counted_not_queued(node_and_sender):
     node, sender = node_and_sender
     pub = sender.publisher(keys.LIDAR_POINTS, "uav1")
     assert pub.wait_matched()
-    node.close()  # the worker stops: nothing drains the queue any more
+    events = sender.publisher(keys.EPISODE, "uav1")
+    assert events.wait_matched()
+    node._stop.set()  # the worker stops draining (as close() does, minus the join)
+    node._thread.join(5.0)
+    node._stop.clear()  # ... but the node still takes messages
     scan = m.pointcloud(np.ones((1000, 3), np.float32), 0.0)
     for _ in range(100):
         pub.put(scan)
-    wait_for(lambda: node.dropped >= 92, what="the overflow counted")
+    wait_for(lambda: node.dropped == 92, what="the overflow counted")
     assert node._q.qsize() == 8  # bounded
+    events.put(m.episode_start(0, 1, (0, 0, 1), (9, 0, 1), 0.0))  # a full queue takes it
+    wait_for(lambda: node._q.qsize() == 9, what="the START queued all the same")
+    assert node.dropped == 92
 
 
 def test_queue_keeps_what_arrives_in_time(node_and_sender):

@@ -43,6 +43,8 @@ def test_round_trip_and_bad_fields():
         TaskSpec.from_dict({"fps": 3}, where="actor.pt")
     with pytest.raises(ValueError, match="task field 'frames' must be a number"):
         TaskSpec.from_dict({"frames": "3"})
+    with pytest.raises(ValueError, match="task field 'frames' must be an integer"):
+        TaskSpec.from_dict({"frames": 3.7})
 
 
 def test_env_networks_and_replay_take_their_sizes_from_the_spec():

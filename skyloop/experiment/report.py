@@ -374,7 +374,7 @@ def _evaluate_gym(actor: Path, config: TrainConfig, episodes: int) -> dict:
     from policy.gym_task import GymTask
 
     torch.set_num_threads(1)
-    controller = ActorController(actor)  # flattens the (frames, obs_dim) state
+    controller = ActorController(actor, task=None)  # flattens the (frames, obs_dim) state
     task = GymTask(config.env, config.goal_return)
     results = []
     try:
