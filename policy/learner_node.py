@@ -41,6 +41,7 @@ from policy.episode_assembler import TOPICS, AssemblerConfig, EpisodeAssembler
 from policy.learner import LearnerConfig
 from policy.replay import ReplayBuffer
 from policy.rewards import RewardConfig, make_goal_reward
+from policy.td3 import flush_denormals
 from policy.transitions import add_episode, transitions_from_steps
 from policy.weights import actor_weights_message
 
@@ -171,9 +172,10 @@ class Learner:
         """Run up to ``limit`` owed updates; returns how many ran."""
         n = min(int(self.owed), limit)
         batch = self.agent.config.batch_size
-        for _ in range(n):
-            self.agent.update(self.buffer.sample(batch),
-                              train_actor=self.agent.updates >= self.config.critic_warmup)
+        with flush_denormals():  # Adam's moments of dead units: see policy.td3
+            for _ in range(n):
+                self.agent.update(self.buffer.sample(batch),
+                                  train_actor=self.agent.updates >= self.config.critic_warmup)
         self.owed -= n
         return n
 

@@ -39,7 +39,7 @@ from bus.messages import nanoseconds, observation_values, odometry_values, twist
 from bus.task import TASK
 from policy.replay import ReplayBuffer
 from policy.rewards import RewardConfig, make_goal_reward
-from policy.td3 import TD3, TD3Config
+from policy.td3 import TD3, TD3Config, flush_denormals
 from policy.transitions import (  # noqa: F401 - Transitions, terminal_observation re-exported
     FRAMES,
     OBS_DIM,
@@ -180,8 +180,10 @@ def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: 
 
         agent.actor.load_state_dict(load_actor(init_actor, task=TASK).state_dict())
         agent.actor_target.load_state_dict(agent.actor.state_dict())
-    for _ in tqdm(range(updates), unit="upd", desc=f"{summary['algo']}+{reward} from logs"):
-        agent.update(buffer.sample(agent.config.batch_size))
+    with flush_denormals():  # Adam's moments of dead units: see policy.td3
+        for _ in tqdm(range(updates), unit="upd",
+                      desc=f"{summary['algo']}+{reward} from logs"):
+            agent.update(buffer.sample(agent.config.batch_size))
     summary["updates"] = updates
     out.mkdir(parents=True, exist_ok=True)
     agent.save_actor(out / "actor.pt")
