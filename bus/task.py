@@ -21,8 +21,6 @@ from typing import Any
 
 __all__ = ["TASK", "TaskSpec", "episode_outcome"]
 
-OUTCOMES = ("success", "collision", "timeout")
-
 
 @dataclass(frozen=True)
 class TaskSpec:

@@ -215,12 +215,7 @@ class LowPrecisionCopy:
         if self._net is self.module:
             return
         for master, p in zip(self.master, self.params, strict=True):
-            if p.grad is None:
-                master.grad = None
-                continue
-            if master.grad is None:
-                master.grad = torch.empty_like(master)
-            master.grad.copy_(p.grad)
+            master.grad = None if p.grad is None else p.grad.float()
             p.grad = None
 
 
@@ -348,7 +343,7 @@ class TD3:
         state = batch.state.to(self.dtype)  # no copy in float32
 
         critic_loss, q = self._critic_loss(state, batch.action, y)
-        self.critic_opt.zero_grad(set_to_none=self.dtype == torch.float32)
+        self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()
         self.lp["critic"].grads_to_master()
         self.critic_opt.step()
@@ -358,7 +353,7 @@ class TD3:
         if self.updates % c.policy_delay == 0:  # delayed policy and target updates
             if train_actor:
                 actor_loss = self._actor_loss(state)
-                self.actor_opt.zero_grad(set_to_none=self.dtype == torch.float32)
+                self.actor_opt.zero_grad(set_to_none=True)
                 actor_loss.backward()
                 self.lp["actor"].grads_to_master()
                 self.actor_opt.step()

@@ -160,21 +160,17 @@ class Trainer:
         if config.env:
             shape, action_dim, self.max_action = probe.state_shape, probe.action_dim, \
                 probe.max_action
-            self.agent = make_agent(config.algo, seed=config.seed, device=config.device,
-                                    state_dim=int(np.prod(shape)), action_dim=action_dim,
-                                    max_action=self.max_action,
-                                    precision=config.precision)
             abr = {"p_frames": shape[0], "p_attributes": shape[1]}
-        else:
-            # sizes from the env's spaces (the task specification, bus.task)
+        else:  # sizes from the env's spaces (the task specification, bus.task)
             shape = probe.observation_space.shape
             action_dim = probe.action_space.shape[0]
             self.max_action = float(probe.action_space.high[0])
-            self.agent = make_agent(config.algo, seed=config.seed, device=config.device,
-                                    state_dim=int(np.prod(shape)), action_dim=action_dim,
-                                    max_action=self.max_action, precision=config.precision)
-            self.agent.task = probe.task.to_dict()  # recorded in the actor files
             abr = {}
+        self.agent = make_agent(config.algo, seed=config.seed, device=config.device,
+                                state_dim=int(np.prod(shape)), action_dim=action_dim,
+                                max_action=self.max_action, precision=config.precision)
+        if not config.env:
+            self.agent.task = probe.task.to_dict()  # recorded in the actor files
         self._first_env = probe
         self.buffer = ReplayBuffer(config.buffer_size, shape, action_dim, seed=config.seed)
         self.goal_reward = make_goal_reward(config.reward, RewardConfig(), seed=config.seed,

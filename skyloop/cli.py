@@ -238,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM as skyloop.launcher.Stopped
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM as skyloop.signals.Stopped
         signum = getattr(exc, "signum", signal.SIGINT)
         print("terminated" if signum == signal.SIGTERM else "interrupted", file=sys.stderr)
         return 128 + signum

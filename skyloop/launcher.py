@@ -46,6 +46,7 @@ from bus.node import Bus
 from bus.session import SessionConfig
 from bus.task import TASK
 from skyloop.argtypes import positive_int
+from skyloop.signals import Stopped, stop_on_sigterm
 
 # The lines the nodes print (sitl.node / policy.node; not imported: --help stays light);
 # the READY lines are for people reading the output: readiness comes over the bus.
@@ -201,24 +202,12 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
     }
 
 
-class Stopped(KeyboardInterrupt):
-    """SIGTERM (``docker stop``, systemd) stops the graph as Ctrl-C does."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
-
-
-def _raise_stopped(signum: int, frame: Any) -> None:
-    raise Stopped(signum)
-
-
 def run_up(args: argparse.Namespace) -> int:
     """Run the graph (see the module docstring); returns the exit code: 0 when the
     episodes finished, 1 when a node died or was not ready in time, 128 + the signal on
     Ctrl-C (130) or SIGTERM (143), after stopping every node and printing the summary of
     the episodes flown so far."""
-    signal.signal(signal.SIGTERM, _raise_stopped)
+    stop_on_sigterm()  # SIGTERM stops the graph as Ctrl-C does
     gcs = args.policy == "none" or args.goals == "gcs"
     if gcs and not args.realtime:
         print("--policy none / --goals gcs: free flight for a ground station, running "

@@ -55,11 +55,10 @@ def _stop_event() -> threading.Event:
 
 
 def _raise_on_term() -> None:
-    """SIGTERM interrupts the main thread as Ctrl-C does (``skyloop.launcher.Stopped``,
-    so the command exits 143, not 130)."""
-    from skyloop.launcher import _raise_stopped
+    """SIGTERM interrupts the main thread as Ctrl-C does (``skyloop.signals``)."""
+    from skyloop.signals import stop_on_sigterm
 
-    signal.signal(signal.SIGTERM, _raise_stopped)
+    stop_on_sigterm()
 
 
 # ----------------------------------------------------------------------------- nodes
