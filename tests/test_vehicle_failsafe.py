@@ -52,7 +52,7 @@ class StatusLog:
 
 @pytest.fixture
 def flying():
-    """The graph flying episodes in OFFBOARD (lockstep); yields (graph, status log)."""
+    """The graph flying episodes in OFFBOARD (lockstep); yields (graph, status log, killer)."""
     hub = f"tcp/127.0.0.1:{free_port()}"
     env = dict(os.environ, SKYLOOP_ZENOH_MODE="peer", SKYLOOP_ZENOH_HUB=hub,
                PYTHONUNBUFFERED="1", MAVLINK20="1")
@@ -63,7 +63,13 @@ def flying():
     bus.watch_ready("*", graph.on_ready)  # the nodes' readiness tokens, as skyloop up
     status = StatusLog(bus)
     clocks: list[int] = []
-    bus.subscribe(keys.CLOCK, "uav1", lambda msg: clocks.append(int(msg.step)))
+    killer = EarlyKill()
+
+    def on_clock(msg) -> None:
+        clocks.append(int(msg.step))
+        killer.on_step(int(msg.step))
+
+    bus.subscribe(keys.CLOCK, "uav1", on_clock)
     try:
         graph.start("perception", ["perception"])
         graph.start("bridge", ["bridge", "--api-port", str(udp[0]), "--api-local-port",
@@ -78,17 +84,37 @@ def flying():
         sim.proc.stdin.flush()
         wait_for(lambda: len(clocks) > 50, timeout=60.0, what="episodes flowing")
         assert status.since(0)[-1] == "OFFBOARD", status.states
-        yield graph, status
+        yield graph, status, killer
     finally:
         graph.stop()
         bus.close()
 
 
-def kill(graph: Graph, name: str, status: StatusLog) -> None:
-    with status.lock:  # from now on
-        status.texts, status.failsafe_reasons, status.crashed = [], set(), False
+class EarlyKill:
+    """SIGKILLs a node as an episode's step ``KILL_STEP`` is published: early in the
+    episode, so the vehicle holds well clear of what the scripted policy flies into
+    (its episodes end in a collision after 25-40 steps; killed later, the vehicle can
+    coast into the obstacle while holding, a crash rather than the failsafe under
+    test)."""
+
+    KILL_STEP = 2
+
+    def __init__(self) -> None:
+        self.pid: int | None = None
+        self.done = threading.Event()
+
+    def on_step(self, step: int) -> None:
+        if self.pid is not None and step == self.KILL_STEP and not self.done.is_set():
+            os.kill(self.pid, signal.SIGKILL)
+            self.done.set()
+
+
+def kill(graph: Graph, name: str, status: StatusLog, killer: EarlyKill) -> None:
     child = next(c for c in graph.children if c.name == name)
-    os.kill(child.proc.pid, signal.SIGKILL)
+    killer.pid = child.proc.pid
+    assert killer.done.wait(60.0), f"{name} not killed: no episode reached its step 2"
+    with status.lock:  # from now on (the failsafe needs COM_OF_LOSS_T after the kill)
+        status.texts, status.failsafe_reasons, status.crashed = [], set(), False
     child.proc.wait(5.0)
 
 
@@ -107,12 +133,12 @@ def assert_holds_lands_disarms(graph: Graph, status: StatusLog) -> None:
 
 
 def test_policy_killed_in_flight(flying) -> None:
-    graph, status = flying
-    kill(graph, "policy", status)
+    graph, status, killer = flying
+    kill(graph, "policy", status, killer)
     assert_holds_lands_disarms(graph, status)
 
 
 def test_bridge_killed_in_flight(flying) -> None:
-    graph, status = flying
-    kill(graph, "bridge", status)
+    graph, status, killer = flying
+    kill(graph, "bridge", status, killer)
     assert_holds_lands_disarms(graph, status)
