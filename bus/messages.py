@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -263,17 +263,37 @@ def pose_values(msg: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- project
+#: The Observation fields that say how its values were scaled (see Observation.msg).
+SCALING_FIELDS = ("radius", "altitude_scale", "angle_scale", "centre_angles", "encoding")
+
+
 def observation(values: np.ndarray, stamp_s: float, episode: int = 0, step: int = 0,
-                frame_id: str = "") -> Any:
-    """``skyloop_msgs/Observation`` from a (attributes,) or (frames, attributes) array."""
+                frame_id: str = "", scaling: Mapping[str, Any] | None = None) -> Any:
+    """``skyloop_msgs/Observation`` from a (attributes,) or (frames, attributes) array;
+    ``scaling`` (the :data:`SCALING_FIELDS` of the ``ObservationConfig`` that made the
+    values) is recorded with them; without it the message says "not recorded"."""
     arr = np.asarray(values, dtype=np.float32)
     if arr.ndim == 1:
         arr = arr[None, :]
     if arr.ndim != 2:
         raise ValueError(f"observation must be 1-D or 2-D, got {arr.shape}")
+    s = dict(scaling) if scaling is not None else {}
     return Observation(header=header(stamp_s, frame_id), episode=int(episode), step=int(step),
                        frames=arr.shape[0], attributes=arr.shape[1],
-                       values=np.ascontiguousarray(arr).reshape(-1))
+                       values=np.ascontiguousarray(arr).reshape(-1),
+                       radius=float(s.get("radius", 0.0)),
+                       altitude_scale=float(s.get("altitude_scale", 0.0)),
+                       angle_scale=float(s.get("angle_scale", 0.0)),
+                       centre_angles=bool(s.get("centre_angles", False)),
+                       encoding=str(s.get("encoding", "")))
+
+
+def observation_scaling(msg: Any) -> dict[str, Any] | None:
+    """The scaling an ``Observation`` records (:data:`SCALING_FIELDS`), None when it was
+    not recorded."""
+    if not msg.radius > 0.0:
+        return None
+    return {name: getattr(msg, name) for name in SCALING_FIELDS}
 
 
 def observation_values(msg: Any) -> np.ndarray:

@@ -29,7 +29,7 @@ from bus import keys, params
 from bus import messages as m
 from bus.node import Bus
 from perception.icosahedron import TruncatedIcosahedron
-from perception.observation import ObservationConfig, observation_from_scan
+from perception.observation import ObservationConfig, observation_from_scan, scaling_fields
 
 log = logging.getLogger("skyloop.perception")
 _MAX_PENDING = 64  # stamps waiting for their other parts
@@ -145,7 +145,8 @@ class PerceptionNode:
         points = m.points_from_pointcloud(scan)
         obs, _, _, _ = observation_from_scan(points, self.ico, position, yaw_from_quat(*q),
                                              velocity, goal, self.config)
-        self.pub.put(m.observation(obs, stamp / 1e9, int(clock.episode), int(clock.step)))
+        self.pub.put(m.observation(obs, stamp / 1e9, int(clock.episode), int(clock.step),
+                                   scaling=scaling_fields(self.config)))
         self.published += 1
 
     def close(self) -> None:

@@ -8,7 +8,9 @@ stacked FIFO (oldest first), zero-padded at episode start (Algorithm 3.1:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -53,6 +55,30 @@ class ObservationConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0.0):
                 raise ValueError(f"{name} must be positive and finite, got {value!r}")
+
+
+def scaling_fields(config: ObservationConfig) -> dict[str, float | bool | str]:
+    """The configuration as the Observation message records it (``bus.messages``
+    ``SCALING_FIELDS``)."""
+    return asdict(config)
+
+
+def config_from_scaling(fields: Mapping[str, Any]) -> ObservationConfig:
+    """The :class:`ObservationConfig` an Observation message recorded
+    (:func:`bus.messages.observation_scaling`); ``ValueError`` if it is not one."""
+    return ObservationConfig(radius=float(fields["radius"]),
+                             altitude_scale=float(fields["altitude_scale"]),
+                             angle_scale=float(fields["angle_scale"]),
+                             encoding=str(fields["encoding"]),
+                             centre_angles=bool(fields["centre_angles"]))
+
+
+def goal_terms(obs: np.ndarray, config: ObservationConfig) -> tuple[float, float, float]:
+    """The inverse of :func:`goal_slots`: (altitude m,
+    h_deg, g_deg) with the angles in [0, 360), as eq. 3.5 takes them."""
+    z, h, g = (float(v) for v in obs[N_FACES:N_FACES + 3])
+    return (z * config.altitude_scale, (h * config.angle_scale) % 360.0,
+            (g * config.angle_scale) % 360.0)
 
 
 def _wrap_deg(angle_rad: float) -> float:
@@ -116,15 +142,22 @@ def build_observation(
     if not (np.isfinite(f).all() and math.isfinite(z) and math.isfinite(h)
             and math.isfinite(g)):
         raise ValueError("observation inputs must be finite")
-    if cfg.centre_angles:
-        h = (h + 180.0) % 360.0 - 180.0
-        g = (g + 180.0) % 360.0 - 180.0
     out = np.empty(OBS_DIM, dtype=np.float32)
     out[:N_FACES] = f / cfg.radius if cfg.encoding == "distance" else f
-    out[N_FACES] = z / cfg.altitude_scale
-    out[N_FACES + 1] = h / cfg.angle_scale
-    out[N_FACES + 2] = g / cfg.angle_scale
+    out[N_FACES:] = goal_slots(z, h, g, cfg)
     return out
+
+
+def goal_slots(altitude: float, h_deg: float, g_deg: float,
+               config: ObservationConfig) -> tuple[float, float, float]:
+    """The observation's last three slots: z / altitude_scale, h / angle_scale,
+    g / angle_scale (the angles first moved to [-180, 180) with ``centre_angles``)."""
+    h, g = float(h_deg), float(g_deg)
+    if config.centre_angles:
+        h = (h + 180.0) % 360.0 - 180.0
+        g = (g + 180.0) % 360.0 - 180.0
+    return (float(altitude) / config.altitude_scale, h / config.angle_scale,
+            g / config.angle_scale)
 
 
 class FrameStacker:

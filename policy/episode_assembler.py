@@ -64,7 +64,8 @@ class _Vehicle:
     def __init__(self) -> None:
         self.open: _Open | None = None
         self.closed: list[_Open] = []
-        self.observations: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self.observations: OrderedDict[tuple[int, int], tuple[np.ndarray, dict | None]] = \
+            OrderedDict()
         self.commands: OrderedDict[int, tuple] = OrderedDict()
         self.truth: OrderedDict[int, list[Pose]] = OrderedDict()
         self.last_end_stamp: int | None = None
@@ -104,7 +105,7 @@ class EpisodeAssembler:
                 if values.shape != (self.config.obs_dim,) or not np.all(np.isfinite(values)):
                     raise ValueError(f"observation of shape {values.shape} or non-finite")
                 self._put(v.observations, (int(msg.episode), int(msg.step)),
-                          np.array(values, np.float32))
+                          (np.array(values, np.float32), m.observation_scaling(msg)))
             elif topic == keys.CMD_VEL:
                 if msg.header.frame_id != BODY_FRAME:
                     self.ignored += 1
@@ -177,13 +178,13 @@ class EpisodeAssembler:
         actions = [v.commands.get(s) for s in stamps[:T]]
         if any(a is None for a in actions):
             return None, "actions"
-        obs = {k: v.observations.get((ep.index, k)) for k in range(T + 1)}
-        if any(obs[k] is None for k in range(T)):
+        got = {k: v.observations.get((ep.index, k)) for k in range(T + 1)}
+        if any(got[k] is None for k in range(T)):
             return None, "observations"
-        if obs[T] is None:
-            del obs[T]
+        obs = {k: o[0] for k, o in got.items() if o is not None}
+        scalings = [o[1] for o in got.values() if o is not None]
         truth = [v.truth[stamps[0]][first]] + [v.truth[s][0] for s in stamps[1:]]
-        return EpisodeSteps(ep.goal, T, ep.outcome, obs, truth, actions), None
+        return EpisodeSteps(ep.goal, T, ep.outcome, obs, truth, actions, scalings), None
 
     def _forget(self, v: _Vehicle, index: int, stamp: int) -> None:
         """Drop the observations of episodes up to ``index`` and the poses and commands

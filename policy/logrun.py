@@ -16,6 +16,7 @@ from bus import messages as m
 from bus.keys import CMD_VEL, EPISODE, OBSERVATION, TRUTH
 from bus.log import EpisodeLogWriter
 from bus.task import TASK, episode_outcome
+from perception.observation import scaling_fields
 from policy.rollout import Controller
 
 NS = 1_000_000_000
@@ -27,6 +28,7 @@ def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_
     base = env.unwrapped
     writer = EpisodeLogWriter(out_dir, run_name=run_name)
     clock = 0  # ns, monotonic across episodes
+    scaling = scaling_fields(base.obs_config)
 
     def put(topic: str, msg, t_s: float) -> None:
         writer.write_msg(vehicle, topic, msg, log_time_ns=clock + int(round(t_s * NS)))
@@ -39,7 +41,8 @@ def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_
 
         def snapshot(episode: int, step: int, t_s: float, latest: np.ndarray) -> None:
             truth = base.vehicle.truth
-            put(OBSERVATION, m.observation(latest, t_s, episode=episode, step=step), t_s)
+            put(OBSERVATION, m.observation(latest, t_s, episode=episode, step=step,
+                                           scaling=scaling), t_s)
             put(TRUTH, m.odometry(truth.position, truth.velocity, (0.0, 0.0, 0.0, 1.0), t_s),
                 t_s)
 

@@ -4,7 +4,9 @@ An episode log (``bus.log``, MCAP with ROS 2 schemas) holds, per vehicle and epi
 the messages this module rebuilds transitions from (the *log contract*):
 
 - ``episode`` START (seed, start, goal) and END (outcome, steps T);
-- ``observation``: one 35-attribute observation per step, ``step`` = 0 .. T;
+- ``observation``: one 35-attribute observation per step, ``step`` = 0 .. T, each with
+  the scaling it was made with (``Observation.msg``; an episode whose observations do
+  not record it, or record two, is refused and counted);
 - ``cmd_vel`` with frame ``base_link``: the policy's action of each step 0 .. T-1,
   body-horizontal (forward, left, up, yaw_rate), as the env and the stack apply it
   (world-frame commands, e.g. of a hold or takeoff, are not policy actions);
@@ -13,8 +15,8 @@ the messages this module rebuilds transitions from (the *log contract*):
 Stack logs end an episode without a scan after the last step; its observation is then
 approximated by :func:`terminal_observation`. Rewards are recomputed, never read from
 the log, so one log serves every goal reward:
-eq. 3.5 from the truth distances and altitude and the logged h, g (the observation
-stores h/180 and g/180 as float32, so recomputed rewards agree with the env's to about
+eq. 3.5 from the truth distances and altitude and the logged h, g un-scaled with the
+recorded scaling (float32 values, so recomputed rewards agree with the env's to about
 1e-5), the collision reward on a collision end, then TR/NGR/EGR/ABR rewrite the
 episode as in online training. States are the 3-frame stacks, zero-padded at the start.
 
@@ -35,7 +37,13 @@ from tqdm import tqdm
 
 from bus.log import read_episodes
 from bus.log_reader import EpisodeLogReader
-from bus.messages import nanoseconds, observation_values, odometry_values, twist_values
+from bus.messages import (
+    nanoseconds,
+    observation_scaling,
+    observation_values,
+    odometry_values,
+    twist_values,
+)
 from bus.task import TASK
 from policy.replay import ReplayBuffer
 from policy.rewards import RewardConfig, make_goal_reward
@@ -76,8 +84,8 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None) -> EpisodeS
         raise ValueError("no steps")
     start = episode.start_event
     goal = np.array([start.goal.x, start.goal.y, start.goal.z])
-    obs = {int(m.decode().step): observation_values(m.decode())[-1]
-           for m in episode.topic("observation")}
+    obs_msgs = [m.decode() for m in episode.topic("observation")]
+    obs = {int(o.step): observation_values(o)[-1] for o in obs_msgs}
     truth_msgs = [m.decode() for m in episode.topic("truth")]
     cmds = (msg.decode() for msg in episode.topic("cmd_vel"))
     actions = [twist_values(c) for c in cmds if c.header.frame_id == BODY_FRAME]
@@ -85,7 +93,8 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None) -> EpisodeS
         stamps = [nanoseconds(t.header.stamp) for t in truth_msgs]
         actions = [commands[t] for t in stamps[:T] if t in commands]
     return EpisodeSteps(goal, T, episode.outcome, obs,
-                        [odometry_values(t) for t in truth_msgs], actions)
+                        [odometry_values(t) for t in truth_msgs], actions,
+                        [observation_scaling(o) for o in obs_msgs])
 
 
 def rebuild_episode(episode, config: RewardConfig,

@@ -8,20 +8,30 @@ observation per step 0 .. T-1 (step T when the log has it), the true pose per st
 0 .. T, and the policy's body-frame action of each step 0 .. T-1.
 
 Rewards are recomputed, never read: eq. 3.5 from the truth distances and altitude and
-the observation's h, g (stored as h/180 and g/180 in float32, so recomputed rewards agree
-with the env's to about 1e-5), the collision reward on a collision end. States are the
+the observation's h, g, un-scaled with the scaling the observations record (the
+perception's ``ObservationConfig``; stored in float32, so recomputed rewards agree with
+the env's to about 1e-5), the collision reward on a collision end. Observations that do
+not record their scaling, or disagree on it within an episode, are refused. States are the
 3-frame stacks, zero-padded at the start. numpy only (no torch, no bus session).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from bus.messages import yaw_of
 from bus.task import TASK
-from perception.observation import FrameStacker, ObservationConfig, goal_angles
+from perception.observation import (
+    FrameStacker,
+    ObservationConfig,
+    config_from_scaling,
+    goal_angles,
+    goal_slots,
+    goal_terms,
+)
 from policy.rewards import GoalReward, RewardConfig, base_reward, collision_reward
 
 OBS_DIM, FRAMES = TASK.obs_dim, TASK.frames  # bus.task
@@ -41,6 +51,7 @@ class EpisodeSteps:
     observations: dict[int, np.ndarray]  # step -> (35,) float32
     truth: list[Pose]  # T + 1 poses
     actions: list[tuple[float, float, float, float]]  # T body-frame actions
+    scalings: list[dict[str, Any] | None]  # what each observation records (None: nothing)
 
 
 @dataclass
@@ -55,18 +66,32 @@ class Transitions:
     reached: bool
 
 
-def terminal_observation(previous: np.ndarray, pose: Pose, goal: np.ndarray) -> np.ndarray:
+def terminal_observation(previous: np.ndarray, pose: Pose, goal: np.ndarray,
+                         scaling: ObservationConfig) -> np.ndarray:
     """The observation after the last step when the log has none (stack logs end the
     episode without a last scan): the previous faces, altitude and h, g from the
     terminal *true* pose (the env uses the estimate; they differ by centimetres and
-    fractions of a degree). Used for the last reward and next state only."""
-    cfg = ObservationConfig()
+    fractions of a degree), scaled as the episode's observations. Used for the last
+    reward and next state only."""
     position, velocity, q = pose
     h, g = goal_angles(position, yaw_of(q), velocity, goal)
     out = np.array(previous, np.float32, copy=True)
-    out[TASK.faces:TASK.obs_dim] = (position[2] / cfg.altitude_scale, h / cfg.angle_scale,
-                                    g / cfg.angle_scale)
+    out[TASK.faces:TASK.obs_dim] = goal_slots(position[2], h, g, scaling)
     return out
+
+
+def one_scaling(scalings: list[dict[str, Any] | None]) -> ObservationConfig:
+    """The one scaling an episode's observations record (``bus.messages``
+    ``observation_scaling`` of each); ``ValueError`` if one does not record it or they
+    disagree."""
+    recorded = [s for s in scalings if s is not None]
+    if not scalings or len(recorded) != len(scalings):
+        raise ValueError("observations without their scaling (Observation.radius 0): "
+                         "rewards cannot be recomputed")
+    distinct = {tuple(sorted(s.items())) for s in recorded}
+    if len(distinct) != 1:
+        raise ValueError(f"observations scaled {len(distinct)} ways within the episode")
+    return config_from_scaling(recorded[0])
 
 
 def transitions_from_steps(ep: EpisodeSteps, config: RewardConfig) -> Transitions:
@@ -74,12 +99,13 @@ def transitions_from_steps(ep: EpisodeSteps, config: RewardConfig) -> Transition
     T, obs, truth = ep.steps, dict(ep.observations), ep.truth
     if T is None or T < 1:
         raise ValueError("no steps")
+    scaling = one_scaling(ep.scalings)
     if ep.outcome not in OUTCOMES:
         raise ValueError(f"outcome {ep.outcome!r}")
     if len(truth) != T + 1 or len(ep.actions) != T:
         raise ValueError(f"{len(truth)} truth poses and {len(ep.actions)} actions for T = {T}")
     if sorted(obs) == list(range(T)):  # a stack log: no scan after the last step
-        obs[T] = terminal_observation(obs[T - 1], truth[T], ep.goal)
+        obs[T] = terminal_observation(obs[T - 1], truth[T], ep.goal, scaling)
     if sorted(obs) != list(range(T + 1)):
         raise ValueError(f"observations for steps {sorted(obs)[:3]}.. but T = {T}")
     stacker = FrameStacker(FRAMES, OBS_DIM)
@@ -90,8 +116,7 @@ def transitions_from_steps(ep: EpisodeSteps, config: RewardConfig) -> Transition
         if k == T - 1 and ep.outcome == "collision":
             rewards[k] = collision_reward(config)[0]
             continue
-        o = obs[k + 1]
-        h, g = float(o[33]) * 180.0, float(o[34]) * 180.0
+        _, h, g = goal_terms(obs[k + 1], scaling)
         rewards[k] = base_reward(dist[k], dist[k + 1], float(truth[k + 1][0][2]), h, g,
                                  config)[0]
     return Transitions(np.stack(stacks[:-1]), np.asarray(ep.actions, np.float32), rewards,

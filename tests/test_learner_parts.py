@@ -16,6 +16,7 @@ from bus import keys
 from bus import messages as m
 from bus.node import Bus
 from bus.session import SessionConfig
+from perception.observation import ObservationConfig, scaling_fields
 from policy.episode_assembler import EpisodeAssembler
 from policy.evaluate import SHIPPED_POLICY, ActorController
 from policy.learner import LearnerConfig
@@ -26,10 +27,11 @@ from policy.transitions import transitions_from_steps
 from policy.weights import WeightsFollower, actor_weights_message
 
 PERIOD_NS = 100_000_000
+SCALING = scaling_fields(ObservationConfig())  # as the perception node records it
 
 
 def episode_messages(index: int, T: int, g0: int, outcome: str = "timeout",
-                     seed: int = 7) -> list[tuple[str, object]]:
+                     seed: int = 7, scaling=SCALING) -> list[tuple[str, object]]:
     """One episode of a vehicle in the stack's order (the sim's events and truth, the
     perception's observations, the bridge's body-frame commands), stamps from step g0."""
     rng = np.random.default_rng(seed + index)
@@ -41,7 +43,7 @@ def episode_messages(index: int, T: int, g0: int, outcome: str = "timeout",
         out.append((keys.TRUTH, m.odometry((0.3 * k, 0.1 * k, 3.5), (1, 0, 0), (0, 0, 0, 1), t)))
         if k < T:
             obs = rng.uniform(0, 1, 35).astype(np.float32)
-            out.append((keys.OBSERVATION, m.observation(obs, t, index, k)))
+            out.append((keys.OBSERVATION, m.observation(obs, t, index, k, scaling=scaling)))
             a = rng.uniform(-2, 2, 4).astype(np.float32)
             out.append((keys.CMD_VEL, m.twist_stamped(*a, t, frame_id="base_link")))
     out.append((keys.EPISODE, m.episode_end(index, outcome, T, (g0 + T) * 0.1, seed + index)))
@@ -69,6 +71,24 @@ def test_complete_episodes_of_two_vehicles_interleaved():
     tr = transitions_from_steps(steps, RewardConfig())
     assert tr.states.shape == (4, 3, 35) and tr.terminal and not tr.reached
     assert tr.rewards[-1] == RewardConfig().collision
+
+
+def test_observations_must_say_how_they_were_scaled():
+    """Rewards un-scale h and g with what the observations record: an episode whose
+    observations do not record it, or record two scalings, is refused by name."""
+    other = scaling_fields(ObservationConfig(angle_scale=90.0))
+    mixed = episode_messages(1, 4, 50)
+    k = next(i for i, (t, _) in enumerate(mixed) if t == keys.OBSERVATION)
+    _, first = mixed[k]
+    mixed[k] = (keys.OBSERVATION, m.observation(m.observation_values(first), 5.0, 1, 0,
+                                                scaling=other))
+    for msgs, why in ((episode_messages(0, 4, 0, scaling=None), "without their scaling"),
+                      (mixed, "scaled 2 ways")):
+        asm = EpisodeAssembler()
+        feed(asm, "uav1", msgs)
+        [(_, _, steps)] = asm.poll(0.0)
+        with pytest.raises(ValueError, match=why):
+            transitions_from_steps(steps, RewardConfig())
 
 
 def test_late_command_after_end_is_joined_by_stamp():

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from bus.log import read_episodes
+from perception.observation import ObservationConfig
 from policy.env import UavNavEnv
 from policy.logrun import log_env_episodes
 from policy.offline import load_logs, rebuild_episode, train_from_logs
@@ -16,15 +17,13 @@ from policy.scripted import StraightLineController
 SEED, EPISODES = 40, 3
 
 
-@pytest.fixture(scope="module")
-def logged(tmp_path_factory):
+def log_and_fly(out, obs_config: ObservationConfig | None = None, episodes: int = EPISODES):
     """A log of scripted episodes and the env's own record of the same episodes."""
-    out = tmp_path_factory.mktemp("logs")
-    env = UavNavEnv(scenario="valley")
-    path = log_env_episodes(env, StraightLineController(), EPISODES, SEED, out)
+    env = UavNavEnv(scenario="valley", observation_config=obs_config)
+    path = log_env_episodes(env, StraightLineController(obs=obs_config), episodes, SEED, out)
     truth = []
-    ctrl = StraightLineController()
-    for i in range(EPISODES):
+    ctrl = StraightLineController(obs=obs_config)
+    for i in range(episodes):
         state, _ = env.reset(seed=SEED + i)
         rewards, actions, done = [], [], False
         while not done:
@@ -35,6 +34,11 @@ def logged(tmp_path_factory):
             done = term or trunc
         truth.append((np.array(rewards), np.array(actions, np.float32), info))
     return path, truth
+
+
+@pytest.fixture(scope="module")
+def logged(tmp_path_factory):
+    return log_and_fly(tmp_path_factory.mktemp("logs"))
 
 
 def test_rebuilt_transitions_match_the_env(logged):
@@ -49,6 +53,18 @@ def test_rebuilt_transitions_match_the_env(logged):
         assert tr.terminal == (info["goal_reached"] or info["collision"])
         assert np.all(tr.states[0][:2] == 0)  # zero-padded at the episode start
         assert np.array_equal(tr.next_states[:-1], tr.states[1:])
+
+
+def test_rewards_use_the_scaling_the_log_records(tmp_path):
+    """A log made under a non-default observation scaling (angles centred and halved in
+    range, altitude over 5 m) gives the env's rewards: h and g are un-scaled with what
+    the observations record, not with the default configuration."""
+    cfg = ObservationConfig(altitude_scale=5.0, angle_scale=90.0, centre_angles=True)
+    path, truth = log_and_fly(tmp_path, cfg, episodes=2)
+    episodes, _ = read_episodes(path)
+    for ep, (rewards, _, _) in zip(episodes, truth, strict=True):
+        np.testing.assert_allclose(rebuild_episode(ep, RewardConfig()).rewards, rewards,
+                                   atol=1e-4)
 
 
 def test_one_log_serves_every_goal_reward(logged):
