@@ -61,8 +61,9 @@ TOPICS: dict[str, Topic] = {
               "estimated state (pose and velocity in world ENU)"),
         Topic(TRUTH, "nav_msgs/msg/Odometry",
               "ground-truth state (pose and velocity in world ENU)"),
-        Topic(CMD_VEL, "geometry_msgs/msg/TwistStamped",
-              "velocity command, world ENU, angular.z = yaw rate"),
+        Topic(CMD_VEL, "skyloop_msgs/msg/VelocitySetpoint",
+              "velocity setpoint: frame (body or world), velocity, yaw rate or heading; "
+              "stamp = the step it answers"),
         Topic(GOAL, "geometry_msgs/msg/PoseStamped", "navigation goal, world ENU"),
         Topic(OBSERVATION, "skyloop_msgs/msg/Observation",
               "perception output (35 attributes, or 3 x 35 stacked)"),

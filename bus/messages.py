@@ -31,7 +31,6 @@ PROJECT_PACKAGE = "skyloop_msgs"
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
-TWIST_STAMPED = "geometry_msgs/msg/TwistStamped"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 OBSERVATION = f"{PROJECT_PACKAGE}/msg/Observation"
 EPISODE_EVENT = f"{PROJECT_PACKAGE}/msg/EpisodeEvent"
@@ -41,8 +40,9 @@ VEHICLE_STATUS = f"{PROJECT_PACKAGE}/msg/VehicleStatus"
 PARAMETER = f"{PROJECT_PACKAGE}/msg/Parameter"
 VEHICLE_COMMAND = f"{PROJECT_PACKAGE}/msg/VehicleCommand"
 COMMAND_ACK = f"{PROJECT_PACKAGE}/msg/CommandAck"
+VELOCITY_SETPOINT = f"{PROJECT_PACKAGE}/msg/VelocitySetpoint"
 PROJECT_TYPES = (OBSERVATION, EPISODE_EVENT, STEP_CLOCK, ACTOR_WEIGHTS, VEHICLE_STATUS,
-                 PARAMETER, VEHICLE_COMMAND, COMMAND_ACK)
+                 PARAMETER, VEHICLE_COMMAND, COMMAND_ACK, VELOCITY_SETPOINT)
 
 START, END = 0, 1
 OUTCOMES = {"none": 0, "success": 1, "collision": 2, "timeout": 3, "aborted": 4}
@@ -76,7 +76,6 @@ Twist = _T["geometry_msgs/msg/Twist"]
 PointField = _T["sensor_msgs/msg/PointField"]
 PointCloud2 = _T[POINTCLOUD2]
 Odometry = _T[ODOMETRY]
-TwistStamped = _T[TWIST_STAMPED]
 PoseStamped = _T[POSE_STAMPED]
 Observation = _T[OBSERVATION]
 EpisodeEvent = _T[EPISODE_EVENT]
@@ -86,6 +85,8 @@ VehicleStatus = _T[VEHICLE_STATUS]
 Parameter = _T[PARAMETER]
 VehicleCommand = _T[VEHICLE_COMMAND]
 CommandAck = _T[COMMAND_ACK]
+VelocitySetpoint = _T[VELOCITY_SETPOINT]
+FRAME_BODY, FRAME_WORLD = VelocitySetpoint.FRAME_BODY, VelocitySetpoint.FRAME_WORLD
 _ZERO_COV = np.zeros(36, dtype=np.float64)
 
 
@@ -234,18 +235,27 @@ def yaw_of(quaternion_xyzw) -> float:
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
-def twist_stamped(vx: float, vy: float, vz: float, yaw_rate: float, stamp_s: float,
-                  frame_id: str = "world") -> Any:
-    """Velocity command: linear (vx, vy, vz) in ``frame_id`` (world ENU), angular.z =
-    yaw rate (rad/s)."""
-    return TwistStamped(header=header(stamp_s, frame_id), twist=Twist(
-        linear=_vec3((vx, vy, vz), Vector3), angular=_vec3((0.0, 0.0, yaw_rate), Vector3)))
+def velocity_setpoint(velocity: Sequence[float], yaw: float, stamp_s: float, body: bool,
+                      heading: bool = False) -> Any:
+    """``VelocitySetpoint``: ``velocity`` (3,) m/s in the body-horizontal FLU frame
+    (``body``) or world ENU; ``yaw`` a CCW yaw rate (rad/s), or with ``heading`` a
+    heading target (rad); ``stamp_s`` the stack time of the step it answers."""
+    return VelocitySetpoint(header=header(stamp_s, "base_link" if body else "world"),
+                            frame=FRAME_BODY if body else FRAME_WORLD,
+                            velocity=_vec3(velocity, Vector3), heading=bool(heading),
+                            yaw=float(yaw))
 
 
-def twist_values(msg: Any) -> tuple[float, float, float, float]:
-    """``TwistStamped`` -> (vx, vy, vz, yaw_rate)."""
-    lin = msg.twist.linear
-    return (lin.x, lin.y, lin.z, msg.twist.angular.z)
+def setpoint_values(msg: Any) -> tuple[float, float, float, float]:
+    """``VelocitySetpoint`` -> (vx, vy, vz, yaw) in its frame (yaw: rate or heading)."""
+    v = msg.velocity
+    return (v.x, v.y, v.z, msg.yaw)
+
+
+def is_action(msg: Any) -> bool:
+    """A ``VelocitySetpoint`` of the policy's kind: body frame, yaw rate (the env's and
+    the stack's action; what training from logs learns from)."""
+    return msg.frame == FRAME_BODY and not msg.heading
 
 
 def pose_stamped(position: Sequence[float], stamp_s: float,

@@ -15,15 +15,14 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
   sim's ``status`` messages and the command answers (by ``revision``). Every event a
   status carries (transitions, failsafes, refusals) goes out as a STATUSTEXT.
 * **Setpoints**: every valid SET_POSITION_TARGET_LOCAL_NED is published on ``cmd_vel``
-  as it arrives, stamped with its ``time_boot_ms`` (the policy node sends the stack
-  time of the step it answers, so the sim matches by step), ``frame_id`` ``base_link``
-  for body-frame setpoints (body-horizontal FLU + yaw rate), ``world`` otherwise (ENU),
-  with a ``|yaw`` suffix when the sender gave an absolute heading (then ``angular.z`` is
-  that heading). A setpoint identical to the previous one, ``time_boot_ms`` included
-  (the policy's 20 Hz re-sends in real time), is not forwarded again (``resends``), so
-  the log holds each step's action once. ``time_boot_ms`` 0 means "not stamped"
-  (MAVProxy's ``velocity``): each such setpoint is forwarded, as PX4 takes every
-  setpoint as a fresh one, so an unstamped stream keeps OFFBOARD alive.
+  as a ``VelocitySetpoint`` (frame, velocity, yaw rate or heading: ``bus/msg``) as it
+  arrives, stamped with its ``time_boot_ms`` (the policy node sends the stack time of
+  the step it answers, so the sim matches by step). A setpoint identical to the
+  previous one, ``time_boot_ms`` included (the policy's 20 Hz re-sends in real time),
+  is not forwarded again (``resends``), so the log holds each step's action once.
+  ``time_boot_ms`` 0 means "not stamped" (MAVProxy's ``velocity``): each such setpoint
+  is forwarded, as PX4 takes every setpoint as a fresh one, so an unstamped stream
+  keeps OFFBOARD alive.
 * **Parameters**: the link's parameter table (:mod:`mavlink_bridge.params`, persisted per
   vehicle; ``param_overrides`` from ``--param`` win for this run, not persisted) is the
   one ground stations read and set. Every accepted PARAM_SET goes out on the bus
@@ -65,9 +64,6 @@ from mavlink_bridge.interfaces import VehicleTelemetry, VelocityCommand
 from mavlink_bridge.vehicle_link import VehicleLink, VehicleLinkConfig
 
 log = logging.getLogger("skyloop.bridge")
-BODY_FRAME = "base_link"
-WORLD_FRAME = "world"
-YAW_SUFFIX = "|yaw"
 
 
 @dataclass(frozen=True)
@@ -170,13 +166,6 @@ class BridgeNode:
         self.param_pub = bus.publisher(keys.PARAMS, vehicle)
         self.link.params.on_change = self._publish_param
         self.params_published = 0
-        original = self.link.handlers["SET_POSITION_TARGET_LOCAL_NED"]
-
-        def on_setpoint_msg(ep: Any, msg: Any, addr: Any, now: float) -> None:
-            self._ms = int(msg.time_boot_ms)
-            original(ep, msg, addr, now)
-
-        self.link.handlers["SET_POSITION_TARGET_LOCAL_NED"] = on_setpoint_msg
         self.pub = bus.publisher(keys.CMD_VEL, vehicle)
         self._q: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._wake_r, self._wake_w = os.pipe()  # bus callbacks wake the select loop
@@ -188,7 +177,6 @@ class BridgeNode:
         self.goals = GoalService(self.link, lambda p: goal_pub.put(m.pose_stamped(p, 0.0)))
         self.goals.install()
         self._t0 = time.monotonic()
-        self._ms = -1
         self._last: tuple | None = None  # the last forwarded setpoint (re-send filter)
         self.published = 0
         self.resends = 0
@@ -206,18 +194,17 @@ class BridgeNode:
         return time.monotonic() - self._t0
 
     # ------------------------------------------------------------------ MAVLink side
-    def _on_setpoint(self, cmd: VelocityCommand, now: float) -> None:
-        key = (self._ms, cmd.vx, cmd.vy, cmd.vz, cmd.yaw_rate, cmd.frame_is_body, cmd.yaw)
-        if key == self._last and self._ms != 0:
+    def _on_setpoint(self, cmd: VelocityCommand, now: float, time_boot_ms: int) -> None:
+        key = (time_boot_ms, cmd)
+        if key == self._last and time_boot_ms != 0:
             self.resends += 1
             return
         self._last = key
-        frame = BODY_FRAME if cmd.frame_is_body else WORLD_FRAME
-        wz = cmd.yaw_rate
-        if cmd.yaw is not None:
-            frame, wz = frame + YAW_SUFFIX, cmd.yaw
-        self.pub.put(m.twist_stamped(cmd.vx, cmd.vy, cmd.vz, wz, self._ms / 1000.0,
-                                     frame_id=frame))
+        heading = cmd.yaw is not None
+        self.pub.put(m.velocity_setpoint((cmd.vx, cmd.vy, cmd.vz),
+                                         cmd.yaw if heading else cmd.yaw_rate,
+                                         time_boot_ms / 1000.0, body=cmd.frame_is_body,
+                                         heading=heading))
         self.published += 1
 
     def _publish_param(self, name: str, value: float) -> None:

@@ -102,7 +102,8 @@ class OffboardClient:
         self.attitude: Any = None  # latest ATTITUDE
         self.statustexts: deque[tuple[int, str]] = deque(maxlen=100)
         self._acks: dict[int, int] = {}
-        self._setpoint: tuple[int, tuple[float, float, float, float]] | None = None
+        #: (MAV frame, NED fields, time_boot_ms or None: the client's clock)
+        self._setpoint: tuple[int, tuple[float, float, float, float], int | None] | None = None
         self._next_setpoint = math.inf
         self._next_heartbeat = -math.inf
         self._t0 = clock()
@@ -188,29 +189,37 @@ class OffboardClient:
                                 f"within {timeout} s")
 
     # ------------------------------------------------------------------ setpoints
-    def send_velocity(self, command: VelocityCommand) -> None:
+    def send_velocity(self, command: VelocityCommand, time_boot_ms: int | None = None) -> None:
         """Send a velocity + yaw-rate setpoint now and keep streaming it.
-        ``command.yaw`` is not sent (the mask carries the yaw rate)."""
+        ``command.yaw`` is not sent (the mask carries the yaw rate). ``time_boot_ms``
+        stamps the setpoint and its re-sends (a lockstep companion stamps the step it
+        answers: the stack time in ms); None: the client's clock since it started."""
         if command.frame_is_body:
             frame, fields = MAV_FRAME_BODY_NED, frames.velocity_flu_to_body_ned(
                 command.vx, command.vy, command.vz, command.yaw_rate)
         else:
             frame, fields = MAV_FRAME_LOCAL_NED, frames.velocity_enu_to_local_ned(
                 command.vx, command.vy, command.vz, command.yaw_rate)
-        self._setpoint = (frame, fields)
+        self._setpoint = (frame, fields, time_boot_ms)
         if self.vehicle is not None:
             self._send_setpoint()
         else:
             self._next_setpoint = -math.inf  # first poll after the heartbeat sends it
 
     def set_velocity_body(self, forward: float, left: float, up: float,
-                          yaw_rate: float) -> None:
+                          yaw_rate: float, time_boot_ms: int | None = None) -> None:
         """Body-horizontal FLU velocity (m/s) and CCW yaw rate (rad/s), streamed."""
-        self.send_velocity(VelocityCommand(forward, left, up, yaw_rate, True))
+        self.send_velocity(VelocityCommand(forward, left, up, yaw_rate, True), time_boot_ms)
 
-    def set_velocity_enu(self, east: float, north: float, up: float, yaw_rate: float) -> None:
+    def set_velocity_enu(self, east: float, north: float, up: float, yaw_rate: float,
+                         time_boot_ms: int | None = None) -> None:
         """World ENU velocity (m/s) and CCW yaw rate (rad/s), streamed."""
-        self.send_velocity(VelocityCommand(east, north, up, yaw_rate, False))
+        self.send_velocity(VelocityCommand(east, north, up, yaw_rate, False), time_boot_ms)
+
+    def resend(self) -> None:
+        """Send the current setpoint again now (same stamp), if there is one."""
+        if self._setpoint is not None and self.vehicle is not None:
+            self._send_setpoint()
 
     def stop_stream(self) -> None:
         """Stop re-sending setpoints (the vehicle's setpoint-loss failsafe will act)."""
@@ -218,8 +227,8 @@ class OffboardClient:
 
     def _send_setpoint(self) -> None:
         assert self._setpoint is not None
-        frame, (vx, vy, vz, yaw_rate) = self._setpoint
-        ms = int((self.clock() - self._t0) * 1000.0) & 0xFFFFFFFF
+        frame, (vx, vy, vz, yaw_rate), stamp = self._setpoint
+        ms = (int((self.clock() - self._t0) * 1000.0) if stamp is None else stamp) & 0xFFFFFFFF
         self.endpoint.send(mavlink.MAVLink_set_position_target_local_ned_message(
             ms, self.vehicle_system, self.config.target_component, frame,
             MASK_VELOCITY_YAW_RATE, 0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, yaw_rate))

@@ -34,7 +34,8 @@ its mode menu, Hold, Land, RTL) asks the same as DO_SET_MODE with ``custom_mode`
 whole PX4 value; it has no acknowledgement (the heartbeat and the commander's
 STATUSTEXT show the outcome), counted ``set_mode.<MAV_RESULT>``; its armed bit is ignored.
 SET_POSITION_TARGET_LOCAL_NED is validated (:mod:`mavlink_bridge.validate`) and
-delivered to ``on_setpoint(command, now)``. Every refusal and every bad frame is counted
+delivered to ``on_setpoint(command, now, time_boot_ms)`` (the stamp: the step it answers).
+Every refusal and every bad frame is counted
 (:attr:`VehicleLink.counters`); nothing received can raise out of :meth:`poll`.
 Commander events reach ground stations through :meth:`VehicleLink.statustext`.
 Further messages and commands plug in through :attr:`VehicleLink.handlers` (message type
@@ -158,7 +159,8 @@ class VehicleLink:
     """The vehicle side of MAVLink: heartbeat, telemetry, commands, setpoints."""
 
     def __init__(self, commander: CommanderLike, config: VehicleLinkConfig | None = None,
-                 on_setpoint: Callable[[VelocityCommand, float], None] | None = None) -> None:
+                 on_setpoint: Callable[[VelocityCommand, float, int], None] | None = None,
+                 ) -> None:
         self.config = c = config or VehicleLinkConfig()
         self.commander = commander
         self.on_setpoint = on_setpoint
@@ -283,7 +285,7 @@ class VehicleLink:
     def _on_setpoint_msg(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
         result = self.validator.validate(msg)
         if isinstance(result, VelocityCommand) and self.on_setpoint is not None:
-            self.on_setpoint(result, now)
+            self.on_setpoint(result, now, int(msg.time_boot_ms))
 
     def _on_command_long(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
         c = self.config

@@ -34,7 +34,6 @@ from bus import messages as m
 from bus.task import TASK
 from policy.transitions import EpisodeSteps, Pose
 
-BODY_FRAME = "base_link"
 TOPICS = (keys.EPISODE, keys.OBSERVATION, keys.TRUTH, keys.CMD_VEL)
 
 
@@ -107,10 +106,10 @@ class EpisodeAssembler:
                 self._put(v.observations, (int(msg.episode), int(msg.step)),
                           (np.array(values, np.float32), m.observation_scaling(msg)))
             elif topic == keys.CMD_VEL:
-                if msg.header.frame_id != BODY_FRAME:
+                if not m.is_action(msg):
                     self.ignored += 1
                     return
-                action = tuple(float(a) for a in m.twist_values(msg))
+                action = tuple(float(a) for a in m.setpoint_values(msg))
                 if not np.all(np.isfinite(action)):
                     raise ValueError("non-finite command")
                 self._put(v.commands, m.nanoseconds(msg.header.stamp), action)

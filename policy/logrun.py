@@ -50,8 +50,7 @@ def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_
         while True:
             action = np.clip(np.asarray(controller(state), np.float32), -TASK.max_action,
                              TASK.max_action)
-            put(CMD_VEL, m.twist_stamped(*(float(a) for a in action), t, frame_id="base_link"),
-                t)
+            put(CMD_VEL, m.velocity_setpoint(action[:3], float(action[3]), t, body=True), t)
             state, _, terminated, truncated, info = env.step(action)
             k, t = k + 1, t + 0.1
             snapshot(i, k, t, state[-1])

@@ -65,17 +65,6 @@ MAX_ACTION = TASK.max_action  # bus.task
 Controller = Callable[[np.ndarray], np.ndarray]
 
 
-class _StampClock:
-    """The client's clock: monotonic wall time, or (while sending a step's setpoint)
-    the value that makes ``time_boot_ms`` equal that step's stack time in ms."""
-
-    def __init__(self) -> None:
-        self.override: float | None = None
-
-    def __call__(self) -> float:
-        return time.monotonic() if self.override is None else self.override
-
-
 class PolicyNode:
     """Flies ``controller`` through MAVLink (see the module docstring)."""
 
@@ -87,15 +76,14 @@ class PolicyNode:
         self.weights = weights  # a policy.weights.WeightsFollower, or None
         self.lockstep = lockstep
         self.stacker = FrameStacker(frames, dim)
-        self.clock = _StampClock()
-        self.client = OffboardClient(client_config, clock=self.clock)
+        self.client = OffboardClient(client_config)
         self.inbox = bus.inbox(keys.OBSERVATION, vehicle, maxsize=64)
         self.episode: int | None = None
         self.sent = 0
         self.bad_actions = 0
         self._bad_in_a_row = 0
         self.resend_period = 0.05  # real time, as MAVSDK's 20 Hz
-        self._stamp_s: float | None = None
+        self._stamp_ms: int | None = None  # the stack time (ms) of the step answered
         self._next_resend = math.inf
         self.hold = hold
         self.ended = -1  # hold: the newest episode whose END was seen
@@ -128,7 +116,7 @@ class PolicyNode:
         client's own setpoint timer."""
         c = self.client
         if on:
-            self._stamp_s = None  # no re-sends of a step's setpoint while holding
+            self._stamp_ms = None  # no re-sends of a step's setpoint while holding
             c.config.setpoint_period = self.resend_period
             c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
         else:
@@ -187,8 +175,8 @@ class PolicyNode:
             return None
         self._bad_in_a_row = 0
         action = np.clip(action, -MAX_ACTION, MAX_ACTION).astype(np.float32)
-        self._stamp_s = m.seconds(msg.header.stamp)
-        self._stamped(lambda: self.client.set_velocity_body(*(float(a) for a in action)))
+        self._stamp_ms = (m.nanoseconds(msg.header.stamp) + 500_000) // 1_000_000
+        self.client.set_velocity_body(*(float(a) for a in action), time_boot_ms=self._stamp_ms)
         self._next_resend = time.monotonic() + self.resend_period
         self.sent += 1
         if self.hold and new:
@@ -196,20 +184,11 @@ class PolicyNode:
             self._resume_offboard()
         return action
 
-    def _stamped(self, send: Callable[[], None]) -> None:
-        """Send with ``time_boot_ms`` = the stack time (ms) of the step answered."""
-        # time_boot_ms = int((clock - t0) * 1000): aim at the middle of the millisecond.
-        self.clock.override = self.client._t0 + self._stamp_s + 0.0005  # noqa: SLF001
-        try:
-            send()
-        finally:
-            self.clock.override = None
-
     def _resend_due(self) -> None:
         """Real time: re-send the newest setpoint (same step stamp) every 50 ms."""
-        if self.lockstep or self._stamp_s is None or time.monotonic() < self._next_resend:
+        if self.lockstep or self._stamp_ms is None or time.monotonic() < self._next_resend:
             return
-        self._stamped(self.client._send_setpoint)  # noqa: SLF001
+        self.client.resend()
         self._next_resend = time.monotonic() + self.resend_period
 
     def spin_once(self, timeout: float = 0.05) -> None:

@@ -7,9 +7,9 @@ the messages this module rebuilds transitions from (the *log contract*):
 - ``observation``: one 35-attribute observation per step, ``step`` = 0 .. T, each with
   the scaling it was made with (``Observation.msg``; an episode whose observations do
   not record it, or record two, is refused and counted);
-- ``cmd_vel`` with frame ``base_link``: the policy's action of each step 0 .. T-1,
-  body-horizontal (forward, left, up, yaw_rate), as the env and the stack apply it
-  (world-frame commands, e.g. of a hold or takeoff, are not policy actions);
+- ``cmd_vel`` (``VelocitySetpoint``) in the body frame with a yaw rate: the policy's
+  action of each step 0 .. T-1, body-horizontal (forward, left, up, yaw_rate), as the
+  env and the stack apply it (world-frame or heading setpoints are not policy actions);
 - ``truth``: the true pose per step 0 .. T (for the distance and altitude terms).
 
 Stack logs end an episode without a scan after the last step; its observation is then
@@ -38,11 +38,12 @@ from tqdm import tqdm
 from bus.log import read_episodes
 from bus.log_reader import EpisodeLogReader
 from bus.messages import (
+    is_action,
     nanoseconds,
     observation_scaling,
     observation_values,
     odometry_values,
-    twist_values,
+    setpoint_values,
 )
 from bus.task import TASK
 from policy.replay import ReplayBuffer
@@ -57,8 +58,6 @@ from policy.transitions import (  # noqa: F401 - Transitions, terminal_observati
     terminal_observation,
     transitions_from_steps,
 )
-
-BODY_FRAME = "base_link"  # cmd_vel in the body-horizontal frame: the policy's action
 
 
 @dataclass
@@ -88,7 +87,7 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None) -> EpisodeS
     obs = {int(o.step): observation_values(o)[-1] for o in obs_msgs}
     truth_msgs = [m.decode() for m in episode.topic("truth")]
     cmds = (msg.decode() for msg in episode.topic("cmd_vel"))
-    actions = [twist_values(c) for c in cmds if c.header.frame_id == BODY_FRAME]
+    actions = [setpoint_values(c) for c in cmds if is_action(c)]
     if len(actions) != T and commands is not None:
         stamps = [nanoseconds(t.header.stamp) for t in truth_msgs]
         actions = [commands[t] for t in stamps[:T] if t in commands]
@@ -105,7 +104,8 @@ def rebuild_episode(episode, config: RewardConfig,
 
 
 def body_commands(path: Path) -> dict[int, tuple]:
-    """Every body-frame ``cmd_vel`` of a log by header stamp (ns)."""
+    """Every ``cmd_vel`` of a log that is a policy action (body frame, yaw rate) by
+    header stamp (ns)."""
     out = {}
     for msg in EpisodeLogReader(path).messages():
         if msg.name == "cmd_vel":
@@ -113,8 +113,8 @@ def body_commands(path: Path) -> dict[int, tuple]:
                 cmd = msg.decode()
             except Exception:  # counted by the reader's report; not an action we can use
                 continue
-            if cmd.header.frame_id == BODY_FRAME:
-                out[nanoseconds(cmd.header.stamp)] = twist_values(cmd)
+            if is_action(cmd):
+                out[nanoseconds(cmd.header.stamp)] = setpoint_values(cmd)
     return out
 
 

@@ -46,12 +46,11 @@ pose on ``truth``. **Stamps** are the stack time ``g * control_period``, ``g`` c
 episode steps over the run (integer nanoseconds, exact); the commander's own clock
 counts every control step flown (ground phase included) and never goes backwards.
 
-**Commands** (``cmd_vel``, TwistStamped, from the bridge): every one is offered to the
-commander (:meth:`~sitl.commander.Commander.setpoint`; OFFBOARD needs a recent one; an
-OFFBOARD request waits briefly for one on its way, see :mod:`sitl.vehicle_service`).
-``frame_id`` ``"base_link"``: body-horizontal FLU + CCW yaw rate; ``"world"``: ENU; a
-``"|yaw"`` suffix: ``angular.z`` is an absolute ENU heading target. In OFFBOARD a
-``base_link`` command is flown with :meth:`EpisodeSim.step_body` (as the env: rotated by
+**Commands** (``cmd_vel``, ``VelocitySetpoint``, from the bridge): every one is offered
+to the commander (:meth:`~sitl.commander.Commander.setpoint`; OFFBOARD needs a recent
+one; an OFFBOARD request waits briefly for one on its way, see
+:mod:`sitl.vehicle_service`). In OFFBOARD a body-frame yaw-rate setpoint (the policy's
+action, ``bus.messages.is_action``) is flown with :meth:`EpisodeSim.step_body` (as the env: rotated by
 the estimated yaw); otherwise the node flies the commander's world ENU output (HOLD,
 LAND, RTL, TAKEOFF; motors stopped while disarmed or idle on the ground). Outside
 OFFBOARD flight of a seeded episode (env rules there: any terrain contact is a
@@ -88,10 +87,10 @@ from bus import keys
 from bus import messages as m
 from bus.task import TASK
 from sitl.commander import State
-from sitl.node_step import BODY_FRAME, POLL_S, SimNodeConfig, StepLoop
+from sitl.node_step import POLL_S, SimNodeConfig, StepLoop
 from sitl.node_util import quat_from_matrix, quat_from_yaw
 
-__all__ = ["BODY_FRAME", "EPISODE_LINE", "READY_LINE", "SUMMARY_LINE", "SimNode",
+__all__ = ["EPISODE_LINE", "READY_LINE", "SUMMARY_LINE", "SimNode",
            "SimNodeConfig", "quat_from_matrix", "quat_from_yaw"]
 
 log = logging.getLogger("skyloop.sim")

@@ -23,8 +23,6 @@ from sitl.node_util import quat_from_matrix, quat_from_yaw
 from sitl.vehicle_service import VehicleService
 
 log = logging.getLogger("skyloop.sim")
-BODY_FRAME = "base_link"
-YAW_SUFFIX = "|yaw"
 TOUCHDOWN_SPEED = 1.0  # m/s, a gentler terrain contact outside OFFBOARD is a landing
 POLL_S = 0.01  # s, how often requests are served while the node waits
 
@@ -140,13 +138,11 @@ class StepLoop:
 
     # ------------------------------------------------------------------ commands
     def _offer(self, msg: Any) -> None:
-        """Offer a ``cmd_vel`` to the commander (see the module docstring's frames)."""
-        vx, vy, vz, wz = m.twist_values(msg)
-        frame = msg.header.frame_id
-        heading = frame.endswith(YAW_SUFFIX)
-        self.commander.setpoint(self.now(), vx, vy, vz, 0.0 if heading else wz,
-                                body=frame.startswith(BODY_FRAME),
-                                yaw=wz if heading else None)
+        """Offer a ``cmd_vel`` (``VelocitySetpoint``) to the commander."""
+        vx, vy, vz, yaw = m.setpoint_values(msg)
+        self.commander.setpoint(self.now(), vx, vy, vz, 0.0 if msg.heading else yaw,
+                                body=msg.frame == m.FRAME_BODY,
+                                yaw=yaw if msg.heading else None)
 
     def _drain_commands(self) -> None:
         while (msg := self.cmds.get_nowait()) is not None:
@@ -275,9 +271,8 @@ class StepLoop:
         if not env_rules:
             x, y = s.vehicle.truth.position[:2]
             s.vehicle.set_ground(float(s.world.terrain_height(x, y)))
-        if cmdr.state == State.OFFBOARD and msg is not None and \
-                msg.header.frame_id == BODY_FRAME:
-            collided = s.step_body(np.array(m.twist_values(msg), dtype=np.float64))
+        if cmdr.state == State.OFFBOARD and msg is not None and m.is_action(msg):
+            collided = s.step_body(np.array(m.setpoint_values(msg), dtype=np.float64))
         else:
             motors = cmdr.armed and cmdr.state != State.ARMED
             collided = s.step_world(np.array(out, dtype=np.float64), motors)

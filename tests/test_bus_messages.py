@@ -40,7 +40,7 @@ def test_keys_reject_unknown():
 def test_topic_table_types_are_registered():
     expected = {
         "lidar/points": "sensor_msgs/msg/PointCloud2", "odom": "nav_msgs/msg/Odometry",
-        "truth": "nav_msgs/msg/Odometry", "cmd_vel": "geometry_msgs/msg/TwistStamped",
+        "truth": "nav_msgs/msg/Odometry", "cmd_vel": "skyloop_msgs/msg/VelocitySetpoint",
         "goal": "geometry_msgs/msg/PoseStamped",
     }
     for name, kind in expected.items():
@@ -73,8 +73,8 @@ def test_odometry_roundtrip():
 
 
 def test_twist_and_pose_roundtrip():
-    back = _roundtrip(m.twist_stamped(1.5, -2.0, 0.25, 0.75, 4.0))
-    assert m.twist_values(back) == (1.5, -2.0, 0.25, 0.75)
+    back = _roundtrip(m.velocity_setpoint((1.5, -2.0, 0.25), 0.75, 4.0, body=False))
+    assert m.setpoint_values(back) == (1.5, -2.0, 0.25, 0.75)
     pos, quat = m.pose_values(_roundtrip(m.pose_stamped((10.0, -5.0, 2.0), 1.0)))
     np.testing.assert_array_equal(pos, [10, -5, 2])
     np.testing.assert_array_equal(quat, [0, 0, 0, 1])

@@ -55,7 +55,7 @@ class FakeRun:
             self.put(keys.ODOM, m.odometry((s, 0, 1), (1, 0, 0), (0, 0, 0, 1), t))
             self.put(keys.TRUTH, m.odometry((s, 0, 1), (1, 0, 0), (0, 0, 0, 1), t))
             self.put(keys.OBSERVATION, m.observation(np.full((3, 35), s, np.float32), t, ep, s))
-            self.put(keys.CMD_VEL, m.twist_stamped(1.0, 0.0, 0.0, 0.0, t))
+            self.put(keys.CMD_VEL, m.velocity_setpoint((1.0, 0.0, 0.0), 0.0, t, body=False))
         if end:
             self.put(keys.EPISODE, m.episode_end(ep, "success", steps, 0.1 * steps))
 

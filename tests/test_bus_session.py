@@ -58,8 +58,8 @@ def test_peers_meet_through_the_hub(hub_cfg, buses):
     pub = a.publisher(keys.CMD_VEL, "uav1")
     assert pub.wait_matched(5.0)
     for i in range(5):
-        pub.put(m.twist_stamped(i, 0.0, 0.0, 0.5, 0.1 * i))
-    got = [m.twist_values(inbox.get(timeout=5.0)) for _ in range(5)]
+        pub.put(m.velocity_setpoint((i, 0.0, 0.0), 0.5, 0.1 * i, body=False))
+    got = [m.setpoint_values(inbox.get(timeout=5.0)) for _ in range(5)]
     assert got == [(float(i), 0.0, 0.0, 0.5) for i in range(5)]
     assert a.counters()["published"] == 5 and b.counters()["received"] == 5
 
@@ -146,9 +146,10 @@ def test_malformed_payload_is_counted_not_raised(hub_cfg, buses):
     assert pub.wait_matched(5.0)
     pub.put_bytes(b"definitely not CDR")
     pub.put_bytes(m.encode(m.odometry((0, 0, 0), (0, 0, 0), (0, 0, 0, 1), 0.0))[:20])
-    pub.put(m.twist_stamped(1, 2, 3, 4, 0.0))  # the stream goes on after bad payloads
+    # the stream goes on after bad payloads
+    pub.put(m.velocity_setpoint((1, 2, 3), 4, 0.0, body=False))
     wait_for(lambda: len(got) == 1 and len(calls) == 1, what="the good message")
-    assert m.twist_values(got[0]) == (1, 2, 3, 4)
+    assert m.setpoint_values(got[0]) == (1, 2, 3, 4)
     assert sub.counters() == {"received": 1, "decode_errors": 2, "callback_errors": 0}
     assert bad_cb.counters() == {"received": 1, "decode_errors": 2, "callback_errors": 1}
     assert b.counters()["decode_errors"] == 4

@@ -45,7 +45,7 @@ def episode_messages(index: int, T: int, g0: int, outcome: str = "timeout",
             obs = rng.uniform(0, 1, 35).astype(np.float32)
             out.append((keys.OBSERVATION, m.observation(obs, t, index, k, scaling=scaling)))
             a = rng.uniform(-2, 2, 4).astype(np.float32)
-            out.append((keys.CMD_VEL, m.twist_stamped(*a, t, frame_id="base_link")))
+            out.append((keys.CMD_VEL, m.velocity_setpoint(a[:3], a[3], t, body=True)))
     out.append((keys.EPISODE, m.episode_end(index, outcome, T, (g0 + T) * 0.1, seed + index)))
     return out
 
@@ -66,7 +66,7 @@ def test_complete_episodes_of_two_vehicles_interleaved():
     assert set(done) == {"uav1", "uav2"} and asm.complete == 2 and not asm.skipped
     i, steps = done["uav2"]
     assert i == 3 and steps.steps == 4 and steps.outcome == "collision"
-    cmds = [m.twist_values(x) for t, x in b if t == keys.CMD_VEL]
+    cmds = [m.setpoint_values(x) for t, x in b if t == keys.CMD_VEL]
     assert steps.actions == [tuple(float(v) for v in c) for c in cmds]
     tr = transitions_from_steps(steps, RewardConfig())
     assert tr.states.shape == (4, 3, 35) and tr.terminal and not tr.reached
@@ -159,7 +159,7 @@ def test_corrupt_payloads_are_counted_not_raised():
     msgs = episode_messages(0, 3, 0)
     bad_obs = m.observation(np.zeros(35, np.float32), 0.1, 0, 1)
     bad_obs.frames = 2  # 35 values said to be 2 x 35
-    nan_cmd = m.twist_stamped(math.nan, 0, 0, 0, 0.1, frame_id="base_link")
+    nan_cmd = m.velocity_setpoint((math.nan, 0, 0), 0, 0.1, body=True)
     asm = EpisodeAssembler()
     out = [x for x in msgs if not (x[0] == keys.OBSERVATION and x[1].step == 1)
            and not (x[0] == keys.CMD_VEL and m.nanoseconds(x[1].header.stamp) == PERIOD_NS)]

@@ -38,7 +38,8 @@ def write_episode(w, ep, t, vehicle="uav1", end=True, steps=STEPS):
         t += 1
         w.write_msg(vehicle, keys.LIDAR_POINTS, m.pointcloud(PTS + ep, 0.1 * s), t)
         w.write_msg(vehicle, keys.ODOM, m.odometry((s, ep, 1), (1, 0, 0), (0, 0, 0, 1), 0.1 * s), t)
-        w.write_msg(vehicle, keys.CMD_VEL, m.twist_stamped(1, 0, 0, 0.1 * ep, 0.1 * s), t)
+        w.write_msg(vehicle, keys.CMD_VEL,
+                    m.velocity_setpoint((1, 0, 0), 0.1 * ep, 0.1 * s, body=False), t)
     if end:
         outcome = ("success", "collision", "timeout")[ep % 3]
         w.write_msg(vehicle, keys.EPISODE, m.episode_end(ep, outcome, steps, 0.1 * steps), t + 1)
@@ -98,7 +99,7 @@ def test_reader_groups_episodes(tmp_path):
     for e in eps:
         assert e.complete and e.seen == e.expected == PER_EPISODE
         assert len(e.topic(keys.ODOM)) == STEPS
-        yaw_rates = [m.twist_values(x.decode())[3] for x in e.topic(keys.CMD_VEL)]
+        yaw_rates = [m.setpoint_values(x.decode())[3] for x in e.topic(keys.CMD_VEL)]
         assert yaw_rates == [0.1 * e.index] * STEPS
     assert rep.clean and rep.messages == 3 * PER_EPISODE + 3 and rep.messages_lost == 0
     assert rep.outside_episodes == 3  # the actor weights between episodes

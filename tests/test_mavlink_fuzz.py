@@ -44,7 +44,7 @@ class Vehicle:
                                 security=security)
         self.link = VehicleLink(self.commander, cfg, on_setpoint=self._on_setpoint)
 
-    def _on_setpoint(self, cmd: VelocityCommand, now: float) -> None:
+    def _on_setpoint(self, cmd: VelocityCommand, now: float, time_boot_ms: int = 0) -> None:
         self.setpoints.append(cmd)
         self.commander.setpoint(now, cmd.vx, cmd.vy, cmd.vz, cmd.yaw_rate,
                                 body=cmd.frame_is_body, yaw=cmd.yaw)

@@ -74,7 +74,7 @@ class Rig:
     def now(self) -> float:
         return self.clock()
 
-    def _on_setpoint(self, cmd: VelocityCommand, now: float) -> None:
+    def _on_setpoint(self, cmd: VelocityCommand, now: float, time_boot_ms: int = 0) -> None:
         self.commands.append(cmd)
         self.commander.setpoint(now, cmd.vx, cmd.vy, cmd.vz, cmd.yaw_rate,
                                 body=cmd.frame_is_body, yaw=cmd.yaw)

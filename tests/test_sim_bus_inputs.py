@@ -111,7 +111,7 @@ def test_geofence_rtl_under_jsbsim(free_sim) -> None:
     def stream(seconds: float) -> None:  # 1 m/s east, world frame, 10 Hz
         for _ in range(int(seconds * 10)):
             t[0] += 0.1
-            cmds.put(m.twist_stamped(1.0, 0.0, 0.0, 0.0, t[0]))
+            cmds.put(m.velocity_setpoint((1.0, 0.0, 0.0), 0.0, t[0], body=False))
             threading.Event().wait(0.1)
 
     stream(1.0)
@@ -157,7 +157,7 @@ def test_offboard_request_served_right_behind_its_setpoint() -> None:
         node.commander.reset(node.now(), airborne=True)  # flying, in HOLD
         cmds = bus.publisher(keys.CMD_VEL, "uav1")
         assert cmds.wait_matched()
-        cmds.put(m.twist_stamped(1.0, 0.0, 0.0, 0.0, 0.0))
+        cmds.put(m.velocity_setpoint((1.0, 0.0, 0.0), 0.0, 0.0, body=False))
         wait_for(lambda: len(node.cmds) == 1, what="the setpoint in the node's inbox")
         assert not node.commander.offboard_available(node.now())  # not offered yet
         answers: list = []

@@ -23,7 +23,7 @@ from bus import keys
 from bus import messages as m
 from bus.session import Bus, SessionConfig
 from mavlink_bridge.modes import OFFBOARD
-from mavlink_bridge.node import BODY_FRAME, BridgeNode
+from mavlink_bridge.node import BridgeNode
 from mavlink_bridge.offboard_client import (
     CommandRejected,
     OffboardClient,
@@ -66,8 +66,8 @@ class Graph:
         """What the sim does between two client polls: serve requests, one step."""
         if self.service is not None:
             while (msg := self.cmds.get_nowait()) is not None:  # as the sim offers them
-                self.commander.setpoint(self.t, *m.twist_values(msg),
-                                        body=msg.header.frame_id == BODY_FRAME)
+                self.commander.setpoint(self.t, *m.setpoint_values(msg),
+                                        body=msg.frame == m.FRAME_BODY)
             self.service.serve(self.t)
             self.commander.step(self.t, VehicleSample(0.0, 0.0, 0.0, 0.0))
             self.service.publish_status(0.0, self.t)
@@ -126,23 +126,21 @@ def test_setpoints_forwarded_with_frame_and_stamp(graph) -> None:
     g.start_vehicle()
     g.client.wait_heartbeat(5.0)
     g.client.config.setpoint_period = 1e9  # no timer re-sends: one message per call
-    g.client.clock = lambda: g.client._t0 + 1.2345  # time_boot_ms 1234  # noqa: SLF001
-    g.client.set_velocity_body(1.0, 0.5, 0.25, 0.125)
-    g.client._send_setpoint()  # an exact re-send: not forwarded again  # noqa: SLF001
-    g.client.clock = lambda: g.client._t0 + 1.3005  # noqa: SLF001
-    g.client.set_velocity_enu(-1.0, 2.0, 0.0, 0.5)
+    g.client.set_velocity_body(1.0, 0.5, 0.25, 0.125, time_boot_ms=1234)
+    g.client.resend()  # an exact re-send: not forwarded again
+    g.client.set_velocity_enu(-1.0, 2.0, 0.0, 0.5, time_boot_ms=1300)
     msgs = [cmds.get(timeout=5.0), cmds.get(timeout=5.0)]
-    assert msgs[0].header.frame_id == BODY_FRAME
+    assert msgs[0].frame == m.FRAME_BODY and not msgs[0].heading
+    assert msgs[0].header.frame_id == "base_link"  # for ROS tools; ``frame`` is the contract
     assert m.nanoseconds(msgs[0].header.stamp) == 1_234_000_000
-    assert m.twist_values(msgs[0]) == (1.0, 0.5, 0.25, 0.125)
-    assert msgs[1].header.frame_id == "world"
+    assert m.setpoint_values(msgs[0]) == (1.0, 0.5, 0.25, 0.125)
+    assert msgs[1].frame == m.FRAME_WORLD and msgs[1].header.frame_id == "world"
     assert m.nanoseconds(msgs[1].header.stamp) == 1_300_000_000
-    assert m.twist_values(msgs[1]) == (-1.0, 2.0, 0.0, 0.5)
+    assert m.setpoint_values(msgs[1]) == (-1.0, 2.0, 0.0, 0.5)
     wait_for(lambda: g.bridge.resends == 1 and g.bridge.published == 2, what="counters")
     assert cmds.get_nowait() is None
-    g.client.clock = lambda: g.client._t0  # time_boot_ms 0: not stamped  # noqa: SLF001
-    g.client._send_setpoint()  # noqa: SLF001
-    g.client._send_setpoint()  # each unstamped one is forwarded (MAVProxy's stream)  # noqa: SLF001
+    g.client.set_velocity_enu(-1.0, 2.0, 0.0, 0.5, time_boot_ms=0)  # 0: not stamped
+    g.client.resend()  # each unstamped one is forwarded (MAVProxy's stream)
     assert [m.nanoseconds(cmds.get(timeout=5.0).header.stamp) for _ in range(2)] == [0, 0]
     # (the bridge counts after the put: the messages may arrive first)
     wait_for(lambda: g.bridge.resends == 1 and g.bridge.published == 4, what="counters")

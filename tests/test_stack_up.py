@@ -111,7 +111,7 @@ def test_parity_actions_and_trajectory(runs, env_episodes):
         steps = [x.decode() for x in ep.topic("truth")]
         assert len(steps) == ref["steps"] + 1  # one per step, plus the terminal pose
         steps = steps[:-1]
-        cmds = [m.twist_values(by_stamp[m.nanoseconds(t.header.stamp)]) for t in steps]
+        cmds = [m.setpoint_values(by_stamp[m.nanoseconds(t.header.stamp)]) for t in steps]
         np.testing.assert_array_equal(np.array(cmds, np.float32), ref["actions"])
         truth = np.array([m.odometry_values(t)[0] for t in steps])
         np.testing.assert_allclose(truth, ref["path"][: len(truth)], rtol=0, atol=1e-9)
