@@ -34,6 +34,12 @@ class TaskSpec:
     max_steps: int = 300  # control steps before a timeout
     goal_radius: float = 2.0  # m, horizontal and vertical distance to the goal
     goal_max_altitude: float = 6.0  # m, success only at or below this altitude
+    # What the policy is trained under and the vehicle can change (``bus.params``
+    # marks these parameters ``task_field``): an actor records them; the policy node
+    # does not fly under other values.
+    ico_radius: float = 4.0  # m, p_radius of the observation (eq. 3.1) [SKY_ICO_RADIUS]
+    max_speed_xy: float = 2.0  # m/s, the autopilot's horizontal limit [MPC_XY_VEL_MAX]
+    max_speed_z: float = 2.0  # m/s, the autopilot's vertical limit [MPC_Z_VEL_MAX]
 
     @property
     def obs_dim(self) -> int:

@@ -221,6 +221,20 @@ class OffboardClient:
         if self._setpoint is not None and self.vehicle is not None:
             self._send_setpoint()
 
+    def set_stream_period(self, period: float) -> None:
+        """Re-send the current setpoint every ``period`` s from now on (``math.inf``:
+        only when told, by a new setpoint or :meth:`resend`)."""
+        self.config.setpoint_period = period
+        self._next_setpoint = self.clock() + period
+
+    def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        """Send a STATUSTEXT (first 50 bytes) to the vehicle, which shows it to ground
+        stations as a companion's message."""
+        if self.vehicle is None:
+            raise OffboardError("vehicle not connected (no heartbeat yet)")
+        raw = text.encode("utf-8", "replace")[:50]
+        self.endpoint.send(mavlink.MAVLink_statustext_message(severity, raw, 0, 0))
+
     def stop_stream(self) -> None:
         """Stop re-sending setpoints (the vehicle's setpoint-loss failsafe will act)."""
         self._setpoint = None

@@ -37,7 +37,8 @@ SET_POSITION_TARGET_LOCAL_NED is validated (:mod:`mavlink_bridge.validate`) and
 delivered to ``on_setpoint(command, now, time_boot_ms)`` (the stamp: the step it answers).
 Every refusal and every bad frame is counted
 (:attr:`VehicleLink.counters`); nothing received can raise out of :meth:`poll`.
-Commander events reach ground stations through :meth:`VehicleLink.statustext`.
+Commander events reach ground stations through :meth:`VehicleLink.statustext`; a
+STATUSTEXT received on one link (the companion's) is forwarded on the others.
 Further messages and commands plug in through :attr:`VehicleLink.handlers` (message type
 -> handler) and :attr:`VehicleLink.commands` (command id -> MAV_RESULT function); a
 command handler may queue a message to follow its COMMAND_ACK
@@ -184,6 +185,7 @@ class VehicleLink:
             "COMMAND_LONG": self._on_command_long,
             "COMMAND_INT": self._on_command_int,
             "SET_MODE": self._on_set_mode,
+            "STATUSTEXT": self._on_statustext,
         }
         self.commands: dict[int, Callable[[Any, float], int]] = {
             mavlink.MAV_CMD_COMPONENT_ARM_DISARM: self._cmd_arm_disarm,
@@ -286,6 +288,18 @@ class VehicleLink:
         result = self.validator.validate(msg)
         if isinstance(result, VelocityCommand) and self.on_setpoint is not None:
             self.on_setpoint(result, now, int(msg.time_boot_ms))
+
+    def _on_statustext(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
+        """A STATUSTEXT from a link (the companion's policy node) goes on to the other
+        links as the vehicle's, as PX4 forwards its companion's (counted)."""
+        text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("utf-8",
+                                                                                "replace")
+        raw = text.rstrip("\x00").encode("utf-8", "replace")[:50]
+        out = mavlink.MAVLink_statustext_message(int(msg.severity), raw, 0, 0)
+        for other in self.endpoints.values():
+            if other is not ep:
+                other.send(out)
+        self._counters["statustext.forwarded"] += 1
 
     def _on_command_long(self, ep: UdpEndpoint, msg: Any, addr: Address, now: float) -> None:
         c = self.config

@@ -42,7 +42,7 @@ class ObservationConfig:
     already in [0, 1] and are used as they are.
     """
 
-    radius: float = 4.0
+    radius: float = TASK.ico_radius  # SKY_ICO_RADIUS
     altitude_scale: float = 10.0
     angle_scale: float = 180.0
     encoding: str = "distance"

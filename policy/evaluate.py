@@ -58,6 +58,8 @@ class ActorController:
         except Exception as exc:  # torch raises many types for a corrupt file
             raise ValueError(f"{path}: not a readable skyloop actor "
                              f"({_torch_error(path, exc)})") from exc
+        #: the task it was trained under (files that do not say: the default task's)
+        self.trained_task: TaskSpec = self.actor.trained_task or TASK
         shipped = path.resolve() == SHIPPED_POLICY
         self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
         inputs = self.actor.net[0].in_features

@@ -30,6 +30,13 @@ ended episode are dropped. At the first observation of a new episode, if the veh
 armed in HOLD (a ground station paused it, or a failsafe held it) the node asks for
 OFFBOARD again: a new goal is the ground station's word to fly.
 
+**Parameters.** A controller flies only under the parameters it was trained under
+(``bus.params`` marks them ``task_field``: the icosahedron radius, the autopilot's speed
+limits; an actor file records their values). When one differs, seen on the ``params``
+topic or in an observation's recorded radius, the node stops answering steps, asks the
+vehicle to hold and sends a STATUSTEXT naming the parameter (the bridge shows it to
+ground stations); when all are back, it flies again (OFFBOARD at the next observation).
+
 **Step matching.** A setpoint sent for an observation carries, as ``time_boot_ms``, the
 stack time (ms) of that observation; the vehicle's bridge uses it to tell the simulator
 which step the command is for. Once in OFFBOARD the client's own timer re-sends stop:
@@ -48,12 +55,13 @@ from typing import Any
 
 import numpy as np
 
-from bus import keys
+from bus import keys, params
 from bus import messages as m
 from bus.node import Bus
-from bus.task import TASK
+from bus.task import TASK, TaskSpec
 from mavlink_bridge.modes import AUTO_LOITER, AUTO_TAKEOFF, OFFBOARD
 from mavlink_bridge.offboard_client import OffboardClient, OffboardClientConfig, OffboardError
+from mavlink_bridge.transport import mavlink
 from perception.observation import FrameStacker
 
 log = logging.getLogger("skyloop.policy")
@@ -71,8 +79,11 @@ class PolicyNode:
     def __init__(self, bus: Bus, controller: Controller, vehicle: str = "uav1",
                  client_config: OffboardClientConfig | None = None, frames: int = TASK.frames,
                  dim: int = TASK.obs_dim, lockstep: bool = True, weights: Any = None,
-                 hold: bool = False) -> None:
+                 hold: bool = False, trained: TaskSpec | None = None) -> None:
         self.bus, self.controller, self.vehicle = bus, controller, vehicle
+        #: the task the controller was trained under (None: it depends on no parameter,
+        #: e.g. the scripted controller); default: the controller's ``trained_task``
+        self.trained = trained or getattr(controller, "trained_task", None)
         self.weights = weights  # a policy.weights.WeightsFollower, or None
         self.lockstep = lockstep
         self.stacker = FrameStacker(frames, dim)
@@ -89,6 +100,10 @@ class PolicyNode:
         self.ended = -1  # hold: the newest episode whose END was seen
         self.events = bus.inbox(keys.EPISODE, vehicle, maxsize=64) if hold else None
         self.reentries = 0  # hold: OFFBOARD asked for again at a new episode
+        self.params = bus.inbox(keys.PARAMS, vehicle, maxsize=64)
+        self.off_task: dict[str, str] = {}  # parameter -> why it is not as trained
+        self.refusals = 0  # times the node stopped flying for off-task parameters
+        self._resume = False  # parameters as trained again: OFFBOARD at the next step
 
     def start(self, takeoff_altitude: float | None = None, timeout: float = 30.0) -> None:
         """Connect, stream a zero setpoint, arm, take off, start offboard."""
@@ -120,8 +135,7 @@ class PolicyNode:
             c.config.setpoint_period = self.resend_period
             c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
         else:
-            c.config.setpoint_period = math.inf
-            c._next_setpoint = math.inf  # noqa: SLF001 - stop the client's timer re-sends
+            c.set_stream_period(math.inf)
 
     def _take_events(self) -> None:
         """Hold: an END of the episode flying starts the zero stream."""
@@ -133,16 +147,58 @@ class PolicyNode:
                     self._stream_zero(True)
 
     def _resume_offboard(self) -> None:
-        """Hold: a new episode while the vehicle is armed in HOLD -> OFFBOARD again."""
+        """The vehicle armed in HOLD -> OFFBOARD again (hold: a new episode; or the
+        parameters are as trained again)."""
         c = self.client
         if not (c.armed and c.mode == AUTO_LOITER):
             return
         self.reentries += 1
         try:
             c.set_mode(OFFBOARD)
-            log.info("new goal while holding: OFFBOARD again")
+            log.info("OFFBOARD again")
         except OffboardError as err:
-            log.warning("new goal: OFFBOARD refused (%s)", err)
+            log.warning("OFFBOARD refused (%s)", err)
+
+    def check_param(self, name: str, value: float) -> None:
+        """A parameter value seen on the bus or in an observation: flying stops while
+        one the task depends on differs from what the controller was trained under
+        (``bus.params.off_task``), and resumes when all are back."""
+        if self.trained is None:
+            return
+        why = params.off_task(self.trained, name, value)
+        was = bool(self.off_task)
+        if why is not None:
+            self.off_task[name] = why
+        else:
+            self.off_task.pop(name, None)
+        if self.off_task and not was:
+            self._refuse()
+        elif was and not self.off_task:
+            log.info("parameters as trained again: flying from the next observation")
+            self._notify("Policy: parameters as trained, flying", mavlink.MAV_SEVERITY_NOTICE)
+            self._resume = True
+
+    def _refuse(self) -> None:
+        """Stop answering steps, ask the vehicle to hold, tell the ground station."""
+        why = "; ".join(self.off_task.values())
+        self.refusals += 1
+        self._resume = False
+        self._stamp_ms = None
+        log.error("not flying: %s (the policy was not trained for it)", why)
+        self._notify(f"Policy off: {why}", mavlink.MAV_SEVERITY_CRITICAL)
+        if self.client.vehicle is not None and self.client.mode != AUTO_LOITER:
+            try:
+                self.client.hold()
+            except OffboardError as err:
+                log.warning("HOLD refused: %s", err)
+
+    def _notify(self, text: str, severity: int) -> None:
+        if self.client.vehicle is not None:
+            self.client.statustext(text, severity)
+
+    def _take_params(self) -> None:
+        while (msg := self.params.get_nowait()) is not None:
+            self.check_param(str(msg.name), float(msg.value))
 
     @property
     def weights_version(self) -> int:
@@ -153,6 +209,11 @@ class PolicyNode:
         """One observation -> the float32 action sent (None if the actor gave NaN/inf)."""
         values = m.observation_values(msg)[-1]
         episode, step = int(msg.episode), int(msg.step)
+        scaling = m.observation_scaling(msg)
+        if scaling is not None:  # the radius perception used for it (SKY_ICO_RADIUS)
+            self.check_param("SKY_ICO_RADIUS", scaling["radius"])
+        if self.off_task:
+            return None  # not trained for these parameters: the vehicle holds
         if self.hold and episode <= self.ended:
             return None  # an ended episode's late observation: keep holding
         new = episode != self.episode
@@ -179,6 +240,9 @@ class PolicyNode:
         self.client.set_velocity_body(*(float(a) for a in action), time_boot_ms=self._stamp_ms)
         self._next_resend = time.monotonic() + self.resend_period
         self.sent += 1
+        if self._resume:
+            self._resume = False
+            self._resume_offboard()
         if self.hold and new:
             self._stream_zero(False)
             self._resume_offboard()
@@ -198,6 +262,7 @@ class PolicyNode:
             msg = self.inbox.get(timeout=wait)
         except TimeoutError:
             msg = None
+        self._take_params()
         if self.events is not None:
             self._take_events()
         if msg is not None:

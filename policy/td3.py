@@ -428,13 +428,14 @@ def load_actor(path: str | Path | BinaryIO, task: TaskSpec | None = None) -> Act
 
     With ``task``, an actor file that records the task it was trained for must match it
     in ``TASK_IO_FIELDS`` (ValueError naming the file and the field); files from before
-    the task was recorded are taken as they are.
+    the task was recorded are taken as they are. The recorded task is the returned
+    actor's ``trained_task`` (None when not recorded).
     """
     state = torch.load(path, map_location="cpu", weights_only=True)
     if not isinstance(state, dict) or state.get("format") != ACTOR_FORMAT:
         raise ValueError(f"{path}: not a skyloop actor file")
-    if task is not None and "task" in state:
-        trained = TaskSpec.from_dict(state["task"], where=str(path))
+    trained = TaskSpec.from_dict(state["task"], where=str(path)) if "task" in state else None
+    if task is not None and trained is not None:
         for name in TASK_IO_FIELDS:
             if getattr(trained, name) != getattr(task, name):
                 raise ValueError(f"{path}: trained for task {name}={getattr(trained, name)}"
@@ -451,6 +452,7 @@ def load_actor(path: str | Path | BinaryIO, task: TaskSpec | None = None) -> Act
                          f"{'-'.join(map(str, c['hidden']))}-{c['action_dim']} actor its "
                          f"config names ({detail})") from None
     actor.eval().requires_grad_(False)
+    actor.trained_task = trained  # what it was trained under (None: not recorded)
     return actor
 
 

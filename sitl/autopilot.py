@@ -43,6 +43,8 @@ import logging
 import math
 from dataclasses import dataclass
 
+from bus.params import default
+
 log = logging.getLogger(__name__)
 
 
@@ -68,8 +70,9 @@ class AutopilotConfig:
 class VelocityAutopilot:
     """Setpoint validation and the velocity -> acceleration -> thrust-vector loops."""
 
-    def __init__(self, config: AutopilotConfig | None = None, max_speed_xy: float = 2.0,
-                 max_speed_z: float = 2.0, max_yaw_rate: float = 2.0,
+    def __init__(self, config: AutopilotConfig | None = None,
+                 max_speed_xy: float = default("MPC_XY_VEL_MAX"),
+                 max_speed_z: float = default("MPC_Z_VEL_MAX"), max_yaw_rate: float = 2.0,
                  gravity: float = 9.80665) -> None:
         self.config = config or AutopilotConfig()
         self.max_speed_xy = max_speed_xy

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import NamedTuple
 
+from bus.params import default
+
 EPS = 1e-9  # s, tolerance on time comparisons (float sums of control periods)
 
 
@@ -27,11 +29,13 @@ class State(StrEnum):
 
 @dataclass
 class CommanderConfig:
-    """Commander parameters (PX4 / ``bus.params`` names in brackets)."""
+    """Commander settings; PX4 names in brackets for those PX4 has that skyloop does not
+    expose. Those a ground station sets are ``bus.params`` parameters (their defaults
+    come from there, and ``ParamDef.sets`` names the field)."""
 
-    setpoint_timeout: float = 1.0  # s, setpoint older: OFFBOARD refused, left [COM_OF_LOSS_T]
-    hold_before_land: float = 5.0  # s in failsafe HOLD -> LAND, inf: never [SKY_HOLD_LAND_T]
-    takeoff_altitude: float = 2.5  # m above the takeoff point [MIS_TAKEOFF_ALT]
+    setpoint_timeout: float = default("COM_OF_LOSS_T")  # s, older: OFFBOARD refused, left
+    hold_before_land: float = default("SKY_HOLD_LAND_T")  # s failsafe HOLD -> LAND, inf: never
+    takeoff_altitude: float = default("MIS_TAKEOFF_ALT")  # m above the takeoff point
     max_takeoff_altitude: float = 100.0  # m, larger requests are refused
     takeoff_speed: float = 1.5  # m/s [MPC_TKO_SPEED]
     takeoff_gain: float = 1.0  # 1/s, climb rate = min(takeoff_speed, gain * error)
@@ -43,12 +47,12 @@ class CommanderConfig:
     disarm_preflight: float = 10.0  # s armed on the ground without takeoff [COM_DISARM_PRFLT]
     yaw_gain: float = 1.0  # 1/s, absolute heading setpoint -> yaw rate
     max_yaw_rate: float = 2.0  # rad/s, clamp of that yaw rate
-    rtl_speed: float = 2.0  # m/s, horizontal return speed [MPC_XY_VEL_MAX]
-    rtl_climb_speed: float = 2.0  # m/s, RTL climb to the flight level [MPC_Z_VEL_MAX]
+    rtl_speed: float = default("MPC_XY_VEL_MAX")  # m/s, horizontal return speed
+    rtl_climb_speed: float = default("MPC_Z_VEL_MAX")  # m/s, RTL climb to the flight level
     rtl_gain: float = 1.0  # 1/s, distance (m) -> approach speed (m/s) near the target
     rtl_arrive_radius: float = 0.5  # m from home: the return leg ends, descent starts
-    flight_level: float = 3.5  # m above ground for RTL [SKY_FLIGHT_LVL]
-    geofence: float = 60.0  # m horizontal from home -> RTL, 0: off [GF_MAX_HOR_DIST]
+    flight_level: float = default("SKY_FLIGHT_LVL")  # m above ground for RTL
+    geofence: float = default("GF_MAX_HOR_DIST")  # m horizontal from home -> RTL, 0: off
 
 
 @dataclass(frozen=True)

@@ -50,8 +50,8 @@ counts every control step flown (ground phase included) and never goes backwards
 to the commander (:meth:`~sitl.commander.Commander.setpoint`; OFFBOARD needs a recent
 one; an OFFBOARD request waits briefly for one on its way, see
 :mod:`sitl.vehicle_service`). In OFFBOARD a body-frame yaw-rate setpoint (the policy's
-action, ``bus.messages.is_action``) is flown with :meth:`EpisodeSim.step_body` (as the env: rotated by
-the estimated yaw); otherwise the node flies the commander's world ENU output (HOLD,
+action, ``bus.messages.is_action``) is flown with :meth:`EpisodeSim.step_body` (as the
+env: rotated by the estimated yaw); otherwise the node flies the commander's world ENU output (HOLD,
 LAND, RTL, TAKEOFF; motors stopped while disarmed or idle on the ground). Outside
 OFFBOARD flight of a seeded episode (env rules there: any terrain contact is a
 collision), the JSBSim ground follows the terrain under the vehicle so it can land, and

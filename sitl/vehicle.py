@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bus.params import default
 from sitl.autopilot import AutopilotConfig, VelocityAutopilot
 from sitl.estimator import Estimator, EstimatorConfig
 from sitl.flight_model import FlightModel, enu_rpy, rotation_flu_to_enu
@@ -30,8 +31,8 @@ from sitl.sensors import SensorConfig, Sensors
 class VehicleConfig:
     physics_hz: float = 500.0
     control_period: float = 0.1
-    max_speed_xy: float = 2.0  # m/s per axis, setpoints saturated to these
-    max_speed_z: float = 2.0
+    max_speed_xy: float = default("MPC_XY_VEL_MAX")  # m/s per axis, setpoints saturated
+    max_speed_z: float = default("MPC_Z_VEL_MAX")
     max_yaw_rate: float = 2.0  # rad/s
     outer_hz: float = 50.0  # autopilot + estimator propagation rate
     autopilot: AutopilotConfig = field(default_factory=AutopilotConfig)

@@ -45,30 +45,12 @@ SETPOINT_GRACE_S = 0.05  # s an OFFBOARD request waits for a setpoint still on i
 
 
 def apply_param(name: str, value: float, commander: Commander, vehicle: Any) -> bool:
-    """Apply a checked sim parameter to the commander and the vehicle's autopilot; False
-    if ``name`` is not applied by the sim."""
-    c = commander.config
-    if name == "COM_OF_LOSS_T":
-        c.setpoint_timeout = value
-    elif name == "SKY_HOLD_LAND_T":
-        c.hold_before_land = value
-    elif name == "MPC_XY_VEL_MAX":
-        if vehicle is not None:  # None: a commander without a flight model (tests)
-            vehicle.autopilot.max_speed_xy = value
-        c.rtl_speed = value
-    elif name == "MPC_Z_VEL_MAX":
-        if vehicle is not None:
-            vehicle.autopilot.max_speed_z = value
-        c.rtl_climb_speed = value
-    elif name == "MIS_TAKEOFF_ALT":
-        c.takeoff_altitude = value
-    elif name == "GF_MAX_HOR_DIST":
-        c.geofence = value
-    elif name == "SKY_FLIGHT_LVL":
-        c.flight_level = value
-    else:
-        return False
-    return True
+    """Apply a checked sim parameter to the commander and the vehicle's autopilot
+    (``bus.params.ParamDef.sets``; ``vehicle`` None: a commander without a flight model,
+    in tests); False if ``name`` sets nothing of the sim's."""
+    return params.bind(name, value, {
+        "commander": commander.config,
+        "autopilot": vehicle.autopilot if vehicle is not None else None})
 
 
 class VehicleService:

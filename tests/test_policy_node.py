@@ -2,16 +2,29 @@
 
 from __future__ import annotations
 
+import os
 import socket
+import threading
+import time
 
 import numpy as np
 import pytest
-from loopback import free_port
+from loopback import free_port, wait_for
 
-from bus import messages as m
-from bus.session import Bus, SessionConfig
-from mavlink_bridge.offboard_client import OffboardClientConfig
-from policy.node import MAX_BAD_ACTIONS, PolicyNode
+os.environ["MAVLINK20"] = "1"  # before mavutil is imported
+from pymavlink import mavutil  # noqa: E402
+
+from bus import messages as m  # noqa: E402
+from bus.session import Bus, SessionConfig  # noqa: E402
+from bus.task import TASK  # noqa: E402
+from mavlink_bridge.node import BridgeNode  # noqa: E402
+from mavlink_bridge.offboard_client import OffboardClientConfig  # noqa: E402
+from mavlink_bridge.transport import mavlink  # noqa: E402
+from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig  # noqa: E402
+from perception.observation import ObservationConfig, scaling_fields  # noqa: E402
+from policy.node import MAX_BAD_ACTIONS, PolicyNode  # noqa: E402
+from sitl.commander import Commander  # noqa: E402
+from sitl.vehicle_service import VehicleService  # noqa: E402
 
 
 def test_an_actor_turning_nan_in_flight_is_refused_after_a_few_steps():
@@ -30,3 +43,86 @@ def test_an_actor_turning_nan_in_flight_is_refused_after_a_few_steps():
     finally:
         node.close()
         bus.close()
+
+
+def test_no_flight_under_parameters_the_actor_was_not_trained_for(tmp_path):
+    """A ground station sets MPC_XY_VEL_MAX under a policy trained with 2 m/s: the policy
+    node stops answering steps, asks HOLD and says why in a STATUSTEXT that reaches the
+    ground station; set back, it flies again. An observation made with another
+    icosahedron radius stops it too. Real parts: the bridge (own thread), the sim's
+    vehicle service and commander, the policy node's MAVLink client, a pymavlink GCS."""
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    buses = [Bus.open(cfg) for _ in range(3)]
+    gcs = mavutil.mavlink_connection("udpin:127.0.0.1:0", source_system=255,
+                                     source_component=190, dialect="common")
+    api, api_local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    bridge = BridgeNode(buses[0], "uav1", VehicleLinkConfig(
+        api=LinkConfig(api_local, api),
+        gcs=LinkConfig(free_port(socket.SOCK_DGRAM), gcs.port.getsockname()[1]),
+        params_file=str(tmp_path / "params.json")))
+    stop = threading.Event()
+    thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
+    commander = Commander()
+    commander.place(0.0, True, "OFFBOARD")  # flying an episode
+    service = VehicleService(buses[1], "uav1", commander, None)
+    node = PolicyNode(buses[2], lambda state: np.full(4, 0.5), "uav1",
+                      OffboardClientConfig(listen_port=api), trained=TASK)
+    def vehicle() -> None:  # the sim's control steps
+        t = 0.0
+        while not stop.is_set():
+            service.serve(t)
+            service.publish_status(0.0, t, force=True)
+            t += 0.1
+            time.sleep(0.01)
+
+    sim = threading.Thread(target=vehicle, daemon=True)
+    thread.start()
+    sim.start()
+    texts: list[str] = []
+
+    def spin() -> None:  # the node's step and the GCS's
+        node.spin_once(0.01)
+        while (msg := gcs.recv_match(type="STATUSTEXT", blocking=False)) is not None:
+            texts.append(msg.text)
+
+    def said(what: str) -> bool:
+        spin()
+        return any(what in x for x in texts)
+
+    try:
+        wait_for(lambda: (spin(), node.client.vehicle is not None)[1], 10.0, "the vehicle")
+        wait_for(lambda: gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=0.1)
+                 is not None or (spin() and False), 10.0, "the GCS link")
+        obs = np.zeros(35, np.float32)
+        scaling = scaling_fields(ObservationConfig())
+        assert node.act(m.observation(obs, 0.0, 0, 0, scaling=scaling)) is not None
+
+        gcs.mav.param_set_send(1, 1, b"MPC_XY_VEL_MAX", 1.0, mavlink.MAV_PARAM_TYPE_REAL32)
+        wait_for(lambda: said("MPC_XY_VEL_MAX=1 m/s, trained with 2"), 10.0,
+                 "the policy's refusal at the ground station")
+        assert node.refusals == 1 and set(node.off_task) == {"MPC_XY_VEL_MAX"}
+        sent = node.sent
+        assert node.act(m.observation(obs, 0.1, 0, 1, scaling=scaling)) is None
+        assert node.sent == sent  # nothing flown
+        hold = f"cmd.{mavlink.MAV_CMD_DO_SET_MODE}.{mavlink.MAV_RESULT_ACCEPTED}"
+        assert bridge.link.counters[hold] == 1, bridge.link.counters
+        assert commander.state == "HOLD"
+
+        gcs.mav.param_set_send(1, 1, b"MPC_XY_VEL_MAX", 2.0, mavlink.MAV_PARAM_TYPE_REAL32)
+        wait_for(lambda: said("parameters as trained"), 10.0, "flying again")
+        assert node.act(m.observation(obs, 0.2, 0, 2, scaling=scaling)) is not None
+        assert node.reentries == 1  # and asked for OFFBOARD again
+
+        other = scaling_fields(ObservationConfig(radius=6.0))  # perception under another
+        assert node.act(m.observation(obs, 0.3, 0, 3, scaling=other)) is None
+        assert node.refusals == 2 and "SKY_ICO_RADIUS" in node.off_task
+        wait_for(lambda: said("SKY_ICO_RADIUS=6 m, trained with 4"), 10.0, "the radius")
+    finally:
+        stop.set()
+        thread.join(5.0)
+        sim.join(5.0)
+        bridge.close()
+        node.close()
+        gcs.close()
+        for b in buses:
+            b.close()

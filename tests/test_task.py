@@ -65,3 +65,34 @@ def test_env_networks_and_replay_take_their_sizes_from_the_spec():
     assert (cfg.state_dim, cfg.action_dim, cfg.max_action) == (
         TASK.state_dim, TASK.action_dim, TASK.max_action)
     assert ReplayBuffer(10).state_shape == TASK.state_shape
+
+
+def test_parameters_hold_the_only_defaults_and_set_the_fields_they_name():
+    from bus import params
+    from perception.observation import ObservationConfig
+    from sitl.commander_types import CommanderConfig
+    from sitl.vehicle import VehicleConfig
+
+    cfg, vehicle = CommanderConfig(), VehicleConfig()
+    owners = {"commander": cfg, "autopilot": vehicle, "observation": ObservationConfig()}
+    for p in params.PARAMS:
+        assert p.sets, p.name  # every parameter says what it sets
+        for target in p.sets:  # ... and that field's default is the parameter's
+            owner, attribute = target.split(".")
+            assert getattr(owners[owner], attribute) == p.default, target
+        if p.task_field:
+            assert getattr(TASK, p.task_field) == p.default
+    assert params.bind("MPC_XY_VEL_MAX", 3.0, {"commander": cfg, "autopilot": None})
+    assert cfg.rtl_speed == 3.0
+    assert not params.bind("SKY_ICO_RADIUS", 5.0, {"commander": cfg, "autopilot": None})
+
+
+def test_off_task_names_parameters_the_policy_was_not_trained_under():
+    from bus import params
+
+    assert params.off_task(TASK, "MPC_XY_VEL_MAX", 2.0) is None
+    assert params.off_task(TASK, "GF_MAX_HOR_DIST", 5.0) is None  # no task field
+    assert params.off_task(TASK, "MPC_Z_VEL_MAX", 1.5) == "MPC_Z_VEL_MAX=1.5 m/s, trained with 2"
+    slow = TaskSpec(max_speed_xy=1.0)
+    assert params.off_task(slow, "MPC_XY_VEL_MAX", 1.0) is None
+    assert "trained with 1" in params.off_task(slow, "MPC_XY_VEL_MAX", 2.0)
