@@ -19,8 +19,9 @@ import numpy as np
 from bus import keys
 from bus import messages as m
 from bus.log import EpisodeLogWriter
+from bus.node import Bus
 from bus.record import Recorder
-from bus.session import Bus, SessionConfig, open_session
+from bus.session import SessionConfig, open_session
 from skyloop.launcher import free_port
 
 SCAN = np.random.default_rng(0).normal(scale=10, size=(28_800, 3)).astype(np.float32)

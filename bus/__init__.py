@@ -3,8 +3,8 @@
 - :mod:`bus.keys`: key expressions ``skyloop/<vehicle>/<topic>`` and the topic table.
 - :mod:`bus.messages`: the rosbags type store (ROS 2 Humble + ``skyloop_msgs`` from
   ``bus/msg/*.msg``), the CDR codec, message constructors and extractors.
-- :mod:`bus.session`: session configuration, hub discovery, the Python router, and
-  :class:`bus.session.Bus` (typed publishers/subscribers, from :mod:`bus.node`).
+- :mod:`bus.session`: session configuration, hub discovery, the Python router.
+- :mod:`bus.node`: :class:`bus.node.Bus` (typed publishers/subscribers on a session).
 - :mod:`bus.log`: the MCAP episode log writer; :mod:`bus.log_reader`: the reader.
 - :mod:`bus.record`: the recorder (``skyloop record``).
 """

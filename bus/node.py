@@ -24,15 +24,13 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import zenoh
 
 from bus.keys import key, ready_key, topic_info
 from bus.messages import decode, encode
-
-if TYPE_CHECKING:
-    from bus.session import SessionConfig
+from bus.session import SessionConfig, open_session
 
 log = logging.getLogger("skyloop.bus")
 
@@ -335,8 +333,6 @@ class Bus:
     def open(cls, cfg: SessionConfig | None = None) -> Bus:
         """Open a session with :func:`bus.session.open_session` (``cfg`` a
         ``SessionConfig``; ``None``: from the environment) and own it."""
-        from bus.session import open_session
-
         return cls(open_session(cfg), owns_session=True)
 
     def _check_open(self) -> None:

@@ -30,8 +30,7 @@ exits, keep retrying the hub endpoint in the background and join the next hub.
 
 Pitfalls (``shared/notes/zenoh-python.md``): never fork after opening a session (start
 children with ``spawn`` or as new programs); close explicitly, undeclaring first
-(:class:`Bus` does). :class:`Bus` and its parts live in :mod:`bus.node` and are
-re-exported here.
+(:class:`bus.node.Bus` does, built on this module's sessions).
 """
 
 from __future__ import annotations
@@ -45,10 +44,8 @@ from dataclasses import dataclass, field, replace
 
 import zenoh
 
-from bus.node import Bus, Inbox, Publisher, Subscription
-
-__all__ = ["HUB", "LOOPBACK_ANY", "Bus", "Inbox", "Publisher", "SessionConfig", "Subscription",
-           "open_router", "open_session", "router_main", "run_router"]
+__all__ = ["HUB", "LOOPBACK_ANY", "SessionConfig", "open_router", "open_session",
+           "router_main", "run_router"]
 
 log = logging.getLogger("skyloop.bus")
 

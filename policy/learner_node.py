@@ -36,11 +36,11 @@ from tqdm import tqdm
 
 from bus import keys
 from bus.task import TASK
-from policy.agents import make_agent
+from policy.agents import make_agent, make_goal_reward
 from policy.episode_assembler import TOPICS, AssemblerConfig, EpisodeAssembler
 from policy.learner import LearnerConfig
 from policy.replay import ReplayBuffer
-from policy.rewards import RewardConfig, make_goal_reward
+from policy.rewards import RewardConfig
 from policy.td3 import flush_denormals
 from policy.transitions import add_episode, transitions_from_steps
 from policy.weights import actor_weights_message

@@ -46,8 +46,9 @@ from bus.messages import (
     setpoint_values,
 )
 from bus.task import TASK
+from policy.agents import make_goal_reward
 from policy.replay import ReplayBuffer
-from policy.rewards import RewardConfig, make_goal_reward
+from policy.rewards import RewardConfig
 from policy.td3 import TD3, TD3Config, flush_denormals
 from policy.transitions import (  # noqa: F401 - Transitions, terminal_observation re-exported
     FRAMES,

@@ -45,7 +45,6 @@ __all__ = [
     "TraditionalReward",
     "NoGoalReward",
     "EqualGoalReward",
-    "make_goal_reward",
     "GOAL_REWARDS",
 ]
 
@@ -233,25 +232,5 @@ class EqualGoalReward(GoalReward):
         return r
 
 
+#: the goal-reward variants by name (``policy.agents.make_goal_reward`` builds them)
 GOAL_REWARDS = ("tr", "ngr", "egr", "abr")
-
-
-def make_goal_reward(
-    name: str, config: RewardConfig | None = None, **abr_kwargs: Any
-) -> GoalReward:
-    """Build a goal-reward variant by name: ``tr``, ``ngr``, ``egr`` or ``abr``.
-
-    ``abr_kwargs`` go to ``policy.abr.ABRConfig`` (imported lazily: it needs torch).
-    """
-    key = name.lower()
-    if key == "tr":
-        return TraditionalReward(config)
-    if key == "ngr":
-        return NoGoalReward(config)
-    if key == "egr":
-        return EqualGoalReward(config)
-    if key == "abr":
-        from policy.abr import ABRConfig, AugmentativeBackwardReward
-
-        return AugmentativeBackwardReward(ABRConfig(**abr_kwargs))
-    raise ValueError(f"unknown goal reward {name!r}; expected one of {GOAL_REWARDS}")

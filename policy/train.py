@@ -55,12 +55,12 @@ import torch
 from tqdm import tqdm
 
 from bus.task import episode_outcome
-from policy.agents import ALGOS, make_agent
+from policy.agents import ALGOS, make_agent, make_goal_reward
 from policy.collector import Collector, CollectorSpec, SharedActor, Transition, collector_main
 from policy.env import UavNavEnv
 from policy.plots import CSV_NAME, plot_runs
 from policy.replay import ReplayBuffer
-from policy.rewards import GOAL_REWARDS, RewardConfig, make_goal_reward
+from policy.rewards import GOAL_REWARDS, RewardConfig
 from policy.td3 import PRECISIONS, flush_denormals
 
 CHECKPOINT = "checkpoint.pt"

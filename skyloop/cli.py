@@ -223,7 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
     from skyloop.stack_cli import add_stack_commands
 
     add_stack_commands(sub)
-    from policy.learner import add_learner_parser
+    from skyloop.learner_cli import add_learner_parser
 
     add_learner_parser(sub)
     return parser

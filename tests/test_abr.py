@@ -10,8 +10,8 @@ import torch
 
 from perception.observation import FrameStacker
 from policy.abr import ABRConfig, AugmentativeBackwardReward, FeatureCNN, cosine_similarity
+from policy.agents import make_goal_reward
 from policy.replay import ReplayBuffer
-from policy.rewards import make_goal_reward
 
 E1 = np.eye(20, dtype=np.float32)[0]
 E2 = np.eye(20, dtype=np.float32)[1]

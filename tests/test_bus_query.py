@@ -11,7 +11,8 @@ from loopback import free_port, wait_for
 
 from bus import keys
 from bus import messages as m
-from bus.session import Bus, SessionConfig
+from bus.node import Bus
+from bus.session import SessionConfig
 
 
 def test_query_answered_later_timeout_and_bad_request() -> None:

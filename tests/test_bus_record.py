@@ -20,8 +20,9 @@ from rosbags.highlevel import AnyReader
 from bus import keys
 from bus import messages as m
 from bus.log import EpisodeLogWriter, read_episodes
+from bus.node import Bus
 from bus.record import Recorder, main, run_record
-from bus.session import Bus, SessionConfig, open_session
+from bus.session import SessionConfig, open_session
 
 REPO = Path(__file__).resolve().parents[1]
 SCAN = np.random.default_rng(0).normal(scale=10, size=(28_800, 3)).astype(np.float32)

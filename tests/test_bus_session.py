@@ -13,8 +13,8 @@ from loopback import free_port, wait_for
 
 from bus import keys
 from bus import messages as m
+from bus.node import Bus
 from bus.session import (
-    Bus,
     SessionConfig,
     open_router,
     open_session,

@@ -29,7 +29,8 @@ from pymavlink.dialects.v20 import common as M  # noqa: E402
 
 from bus import keys  # noqa: E402
 from bus import messages as bm  # noqa: E402
-from bus.session import Bus, SessionConfig  # noqa: E402
+from bus.node import Bus  # noqa: E402
+from bus.session import SessionConfig  # noqa: E402
 from mavlink_bridge import frames  # noqa: E402
 from mavlink_bridge.modes import encode_custom_mode  # noqa: E402
 

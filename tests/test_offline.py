@@ -7,11 +7,12 @@ import pytest
 
 from bus.log import read_episodes
 from perception.observation import ObservationConfig
+from policy.agents import make_goal_reward
 from policy.env import UavNavEnv
 from policy.logrun import log_env_episodes
 from policy.offline import load_logs, rebuild_episode, train_from_logs
 from policy.replay import ReplayBuffer
-from policy.rewards import RewardConfig, make_goal_reward
+from policy.rewards import RewardConfig
 from policy.scripted import StraightLineController
 
 SEED, EPISODES = 40, 3

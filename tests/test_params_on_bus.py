@@ -25,7 +25,8 @@ from pymavlink import mavutil  # noqa: E402
 
 from bus import keys  # noqa: E402
 from bus import messages as m  # noqa: E402
-from bus.session import Bus, SessionConfig  # noqa: E402
+from bus.node import Bus  # noqa: E402
+from bus.session import SessionConfig  # noqa: E402
 from mavlink_bridge.node import BridgeNode  # noqa: E402
 from mavlink_bridge.transport import mavlink  # noqa: E402
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig  # noqa: E402

@@ -15,7 +15,8 @@ os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 
 from bus import messages as m  # noqa: E402
-from bus.session import Bus, SessionConfig  # noqa: E402
+from bus.node import Bus  # noqa: E402
+from bus.session import SessionConfig  # noqa: E402
 from bus.task import TASK  # noqa: E402
 from mavlink_bridge.node import BridgeNode  # noqa: E402
 from mavlink_bridge.offboard_client import OffboardClientConfig  # noqa: E402

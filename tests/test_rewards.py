@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from policy.agents import make_goal_reward
 from policy.rewards import (
     EqualGoalReward,
     NoGoalReward,
@@ -15,7 +16,6 @@ from policy.rewards import (
     base_reward,
     collision_reward,
     fold_angle,
-    make_goal_reward,
 )
 
 

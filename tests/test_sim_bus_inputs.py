@@ -14,7 +14,8 @@ from loopback import free_port, wait_for
 
 from bus import keys
 from bus import messages as m
-from bus.session import Bus, SessionConfig
+from bus.node import Bus
+from bus.session import SessionConfig
 from sitl.node import SimNode, SimNodeConfig
 
 

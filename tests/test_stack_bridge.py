@@ -21,7 +21,8 @@ from loopback import free_port, wait_for
 
 from bus import keys
 from bus import messages as m
-from bus.session import Bus, SessionConfig
+from bus.node import Bus
+from bus.session import SessionConfig
 from mavlink_bridge.modes import OFFBOARD
 from mavlink_bridge.node import BridgeNode
 from mavlink_bridge.offboard_client import (

@@ -119,9 +119,10 @@ def test_parity_actions_and_trajectory(runs, env_episodes):
 
 @pytest.mark.slow
 def test_stack_log_trains_from_logs(runs, env_episodes):
+    from policy.agents import make_goal_reward
     from policy.offline import load_logs
     from policy.replay import ReplayBuffer
-    from policy.rewards import RewardConfig, make_goal_reward
+    from policy.rewards import RewardConfig
 
     _, mcap, _ = runs["peer"]
     buf = ReplayBuffer(10_000, (3, 35), 4)

@@ -19,7 +19,8 @@ import pytest
 from loopback import free_port, wait_for
 
 from bus import keys
-from bus.session import Bus, SessionConfig
+from bus.node import Bus
+from bus.session import SessionConfig
 from skyloop.launcher import Graph
 
 PARAMS = ["--param", "COM_OF_LOSS_T=0.5", "--param", "SKY_HOLD_LAND_T=1.0"]
