@@ -1,5 +1,5 @@
-"""argparse value types for the ``skyloop`` commands: a bad number is a one-line usage
-error naming the flag (argparse adds it), before anything starts."""
+"""argparse value types and shared flags for the ``skyloop`` commands: a bad number is
+a one-line usage error naming the flag (argparse adds it), before anything starts."""
 
 from __future__ import annotations
 
@@ -27,3 +27,15 @@ def nonnegative_int(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
     return value
+
+
+def add_bus_flags(p: argparse.ArgumentParser, vehicle: bool = True) -> None:
+    """The Zenoh flags every node takes (``SessionConfig.from_flags``), ``--vehicle``
+    (a node of one vehicle) and ``-v``."""
+    if vehicle:
+        p.add_argument("--vehicle", default="uav1", help="vehicle name (default: uav1)")
+    p.add_argument("--mode", choices=("peer", "client"), default=None,
+                   help="Zenoh mode (default: $SKYLOOP_ZENOH_MODE or peer)")
+    p.add_argument("--connect", default=None, help="Zenoh endpoints, comma-separated")
+    p.add_argument("--listen", default=None, help="Zenoh endpoints to listen on")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")

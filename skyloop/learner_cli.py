@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from policy.learner import ALGOS, REWARDS, LearnerConfig
+from skyloop.argtypes import add_bus_flags
 
 
 def cmd_learner(args: argparse.Namespace) -> int:
@@ -88,9 +89,5 @@ def add_learner_parser(sub: Any) -> None:
     p.add_argument("--threads", type=int, default=d.threads, help="torch threads")
     p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--mode", choices=("peer", "client"), default=None,
-                   help="Zenoh mode (default: $SKYLOOP_ZENOH_MODE or peer)")
-    p.add_argument("--connect", default=None, help="Zenoh endpoints, comma-separated")
-    p.add_argument("--listen", default=None, help="Zenoh endpoints to listen on")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    add_bus_flags(p, vehicle=False)
     p.set_defaults(func=cmd_learner)

@@ -14,19 +14,10 @@ import threading
 from typing import Any
 
 from bus.task import TASK
-from skyloop.argtypes import nonnegative_int, positive_int
+from skyloop.argtypes import add_bus_flags, nonnegative_int, positive_int
 
 MAVLINK_DEFAULTS = {"api_port": 14540, "api_local_port": 14580, "gcs_port": 14550,
                     "gcs_local_port": 18570}
-
-
-def _zenoh_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--vehicle", default="uav1", help="vehicle name (default: uav1)")
-    p.add_argument("--mode", choices=("peer", "client"), default=None,
-                   help="Zenoh mode (default: $SKYLOOP_ZENOH_MODE or peer)")
-    p.add_argument("--connect", default=None, help="Zenoh endpoints, comma-separated")
-    p.add_argument("--listen", default=None, help="Zenoh endpoints to listen on")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
 
 
 def _clock_args(p: argparse.ArgumentParser) -> None:
@@ -259,7 +250,7 @@ def add_stack_commands(sub: Any) -> None:
 
     p = sub.add_parser("sim", help="simulator node: the vehicle, its commander and "
                                    "failsafes, seeded episodes on the bus")
-    _zenoh_args(p)
+    add_bus_flags(p)
     _clock_args(p)
     p.add_argument("--scenario", default="valley")
     p.add_argument("--episodes", type=nonnegative_int, default=1,
@@ -285,11 +276,11 @@ def add_stack_commands(sub: Any) -> None:
     p.set_defaults(func=cmd_sim)
 
     p = sub.add_parser("perception", help="perception node: scan + odom + goal -> observation")
-    _zenoh_args(p)
+    add_bus_flags(p)
     p.set_defaults(func=cmd_perception)
 
     p = sub.add_parser("policy", help="policy node: observation -> actor -> MAVLink setpoints")
-    _zenoh_args(p)
+    add_bus_flags(p)
     _clock_args(p)
     p.add_argument("--policy", default=None,
                    help="actor file, 'scripted', 'none' or 'shipped' (default)")
@@ -308,7 +299,7 @@ def add_stack_commands(sub: Any) -> None:
 
     p = sub.add_parser("bridge", help="the vehicle's MAVLink endpoint (commands go to "
                                       "the sim's commander over the bus)")
-    _zenoh_args(p)
+    add_bus_flags(p)
     p.add_argument("--bind", default="127.0.0.1", help="local address of both links")
     p.add_argument("--api-host", default="127.0.0.1", help="where the offboard client is")
     p.add_argument("--api-port", type=int, default=MAVLINK_DEFAULTS["api_port"])
