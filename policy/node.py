@@ -113,7 +113,14 @@ class PolicyNode:
         c.wait_heartbeat(timeout)
         c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
         c.arm()
-        c.takeoff(takeoff_altitude)
+        try:
+            c.takeoff(takeoff_altitude)
+        except OffboardError:
+            if not c.armed:
+                raise
+            # armed and the takeoff refused: already flying (a restarted node joining
+            # a vehicle that holds or lands after its failsafe)
+            log.info("the vehicle is flying (%s): joining it in the air", c.mode)
         if self.hold:  # no episode will place it airborne: climb first (then Hold)
             c.wait(lambda: c.mode == AUTO_TAKEOFF, 5.0)
             if not c.wait(lambda: c.mode == AUTO_LOITER, timeout):

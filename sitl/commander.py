@@ -191,6 +191,11 @@ class Commander:
         self._last_setpoint_time = now
         return True
 
+    @property
+    def last_setpoint_time(self) -> float:
+        """When the newest setpoint came (commander time; -inf: none yet)."""
+        return self._last_setpoint_time
+
     def offboard_available(self, now: float) -> bool:
         """True if the newest setpoint is no older than ``setpoint_timeout`` (see the
         module docstring): what OFFBOARD needs, the negation of setpoint loss."""

@@ -18,9 +18,14 @@ the commander is in OFFBOARD before go, the node waits (nothing answers steps ye
   does and the vehicle is placed airborne at its start (as in the env); the commander
   is placed with it (:meth:`~sitl.commander.Commander.place`: home there, collision latch
   cleared) and continues in OFFBOARD if it flew OFFBOARD in the previous episode's last
-  step, else in HOLD. Outcomes follow the env: collision is terminal; the goal is
-  reached within ``goal_radius`` (2 m) at an altitude not above ``goal_max_altitude``
-  (6 m); ``max_steps`` (300) is a timeout.
+  step, else in HOLD. An episode that has flown OFFBOARD and leaves it (a failsafe such
+  as setpoint loss, a ground station's mode change), or whose lockstep command for a step
+  did not come within ``lockstep_timeout_s``, ends ``aborted`` at once, never merged
+  with what follows; the node then flies control steps outside any episode (the
+  failsafe goes on: HOLD, LAND) until the vehicle is in OFFBOARD with a new setpoint,
+  e.g. from a restarted policy (``skyloop up --restart on-failure``). Outcomes follow the env:
+  collision is terminal; the goal is reached within ``goal_radius`` (2 m) at an
+  altitude not above ``goal_max_altitude`` (6 m); ``max_steps`` (300) is a timeout.
 * Free flight (``free_flight``, ``skyloop up --policy none``): the vehicle stays where
   it is, on the ground until a ground station flies it. An episode is one goal: it
   starts where the vehicle is, toward episode ``i``'s seeded goal, has no timeout, and
@@ -124,14 +129,26 @@ class SimNode(StepLoop):
         task = replace(TASK, max_steps=math.inf if c.free_flight else c.max_steps,
                        goal_radius=c.goal_radius, goal_max_altitude=c.goal_max_altitude)
         path = [s.vehicle.truth.position.copy()]
+        flown = False  # the episode has flown OFFBOARD (seeded: it is placed in OFFBOARD)
+        missed = self.missed
         while True:
             collided = self.tick(i)
             truth = s.vehicle.truth
             path.append(truth.position.copy())
             outcome = task.outcome(collided, s.goal_distance(), float(truth.position[2]),
                                    s.steps)
-            if outcome is None and (self._pending_goal is not None or self.stopping.is_set()):
+            offboard = self.commander.state == State.OFFBOARD
+            broken = None if c.free_flight else \
+                "the vehicle left OFFBOARD" if flown and not offboard else \
+                "a step's command did not come" if self.missed > missed else None
+            if outcome is None and (self._pending_goal is not None or self.stopping.is_set()
+                                    or broken):
                 outcome = "aborted"
+                if broken:
+                    self._rejoin_after = self.now()
+                    log.warning("episode %d aborted at step %d: %s (%s)", i, s.steps, broken,
+                                self.commander.state)
+            flown = flown or offboard
             if outcome is not None:
                 break
         # The terminal pose, for logs (training from logs needs it; only the recorder
@@ -155,12 +172,28 @@ class SimNode(StepLoop):
                 self._place_on_ground(self.sim.vehicle.truth.position)
             return self.wait_goal()
         if not self.config.free_flight:
+            if self._rejoin_after is not None:
+                self.wait_rejoin(self._rejoin_after)
+                self._rejoin_after = None
             return None
         start, goal = self.sim.world.sample_start_goal(
             np.random.default_rng(self.config.seed + i))
         if outcome == "collision":  # back on the ground at this episode's start
             self._place_on_ground(start)
         return goal
+
+    def wait_rejoin(self, since: float) -> None:
+        """Seeded episodes, after one aborted at commander time ``since`` because the
+        vehicle left OFFBOARD or a lockstep command did not come: fly control steps
+        outside any episode (failsafes, requests, status) until the vehicle is in
+        OFFBOARD with a setpoint newer than that, e.g. from a restarted policy node; the
+        next episode then starts placed as usual."""
+        log.info("waiting for OFFBOARD and a new setpoint before the next episode")
+        cmdr = self.commander
+        while not self.stopping.is_set() and not (
+                cmdr.state == State.OFFBOARD and cmdr.last_setpoint_time > since):
+            if self.tick(None):
+                self._place_on_ground(self.sim.vehicle.truth.position)
 
     def wait_goal(self) -> np.ndarray | None:
         """``goals_from_bus``: fly control steps outside any episode (the commander's

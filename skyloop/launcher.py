@@ -24,7 +24,14 @@ goals the policy hovers (``policy --hold``); until stopped by default. ``--param
 NAME=VALUE`` goes to the sim (``bus/params.py``). When the sim finishes, the others get
 SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period. If any child
 dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits non-zero,
-naming the node that died and its last log line."""
+naming the node that died and its last log line. With ``--restart on-failure`` a
+perception, bridge or policy that exits with a failure is started again (at most
+``--max-restarts`` times each, named with its last log line each time), with the policy
+when perception or the bridge is restarted (:data:`RESTARTABLE`), and the run goes on:
+the vehicle's failsafe holds meanwhile, the episode in progress ends ``aborted``
+(``sitl.node``) and the next one starts once the restarted policy is in OFFBOARD; the
+summary counts the restarts. The sim and the recorder are never restarted (a new sim
+would be a new run; a new recorder a second log)."""
 
 from __future__ import annotations
 
@@ -55,6 +62,10 @@ SUMMARY_LINE = "SKYLOOP-SUMMARY "
 READY_LINE = "SKYLOOP-POLICY-READY"
 SIM_READY_LINE = "SKYLOOP-SIM-READY"
 GRACE_S = 3.0
+#: the nodes ``--restart on-failure`` starts again, and the nodes each one's restart
+#: takes along (rest-for-one, as in a supervision tree: the policy flies on
+#: perception's observations through the bridge's link, and joins the vehicle anew)
+RESTARTABLE = {"perception": ("policy",), "bridge": ("policy",), "policy": ()}
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -98,6 +109,7 @@ class Graph:
         self.summary: dict | None = None
         self.log_path: str | None = None
         self.ready = {name: threading.Event() for name in ("policy", "record", "sim")}
+        self.restarts: collections.Counter[str] = collections.Counter()
         self._lock = threading.Lock()
 
     def start(self, name: str, args: list[str], stdin: int | None = None) -> Child:
@@ -111,6 +123,17 @@ class Graph:
         threading.Thread(target=self._read, args=(child,), daemon=True).start()
         print(f"started {name} (pid {proc.pid})", flush=True)
         return child
+
+    def restart(self, child: Child, args: list[str]) -> Child:
+        """Start ``child``'s program again in its place (stopped first if it runs)."""
+        if child.proc.poll() is None:
+            self._stop([child], GRACE_S)
+        self.children.remove(child)
+        self.restarts[child.name] += 1
+        return self.start(child.name, args)
+
+    def child(self, name: str) -> Child | None:
+        return next((c for c in self.children if c.name == name), None)
 
     def _read(self, child: Child) -> None:
         assert child.proc.stdout is not None
@@ -155,14 +178,18 @@ class Graph:
 
     def stop(self, grace: float = GRACE_S) -> None:
         """SIGTERM every live child, SIGKILL what is left after ``grace`` seconds."""
-        for c in reversed(self.children):
+        self._stop(self.children, grace)
+
+    @staticmethod
+    def _stop(children: list[Child], grace: float) -> None:
+        for c in reversed(children):
             if c.proc.poll() is None:
                 try:
                     os.killpg(c.proc.pid, signal.SIGTERM)
                 except ProcessLookupError:
                     pass
         deadline = time.monotonic() + grace
-        for c in self.children:
+        for c in children:
             try:
                 c.proc.wait(max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
@@ -260,7 +287,14 @@ def run_up(args: argparse.Namespace) -> int:
         sim.proc.stdin.flush()
         while sim.proc.poll() is None:
             if (c := graph.dead(exclude="sim")) is not None:
-                return _died(graph, c)
+                if not _may_restart(graph, c, args):
+                    return _died(graph, c)
+                graph.restart(c, nodes[c.name])
+                for name in RESTARTABLE[c.name]:
+                    if (along := graph.child(name)) is not None:
+                        print(f"skyloop up: restarting '{name}' too (it depends on "
+                              f"'{c.name}')", file=sys.stderr, flush=True)
+                        graph.restart(along, nodes[name])
             time.sleep(0.05)
         if sim.proc.returncode != 0 or graph.summary is None:
             return _died(graph, sim)
@@ -308,6 +342,19 @@ def _wait_listening(endpoint: str, child: Child, timeout: float) -> bool:
     return False
 
 
+def _may_restart(graph: Graph, child: Child, args: argparse.Namespace) -> bool:
+    """``--restart on-failure``: whether ``child`` (exited) is started again; says so."""
+    code = child.proc.returncode
+    n = graph.restarts[child.name]
+    if args.restart != "on-failure" or child.name not in RESTARTABLE or code == 0 \
+            or n >= args.max_restarts:
+        return False
+    print(f"skyloop up: node '{child.name}' exited (code {code}); its last log line: "
+          f"{child.last_line}; restarting it ({n + 1}/{args.max_restarts})",
+          file=sys.stderr, flush=True)
+    return True
+
+
 def _died(graph: Graph, child: Child) -> int:
     child.proc.poll()
     code = child.proc.returncode
@@ -321,14 +368,16 @@ def _summary(graph: Graph, args: argparse.Namespace, wall_s: float) -> dict[str,
     s = dict(graph.summary or {})
     n = s.get("episodes", 0)
     s.update(policy=args.policy or "shipped", router=bool(args.router), log=graph.log_path,
-             total_wall_s=wall_s)
+             total_wall_s=wall_s, restarts=dict(graph.restarts))
     outcomes = ("success", "collision", "timeout") + (("aborted",) if s.get("aborted") else ())
     rates = ", ".join(f"{o} {s.get(o, 0)}/{n}" for o in outcomes)
     lat = (f", latency p50 {s['latency_ms_p50']:.2f} ms p99 {s['latency_ms_p99']:.2f} ms"
            if "latency_ms_p50" in s else "")
+    restarts = ("; restarted " + ", ".join(f"{k} {v}x" for k, v in graph.restarts.items())
+                if graph.restarts else "")
     print(f"summary: {n} episodes on {s.get('scenario')} ({s.get('mode')}): {rates}; "
           f"mean steps {s.get('mean_steps', 0):.1f}; {s.get('steps_per_s', 0):.0f} control "
-          f"steps/s{lat}", flush=True)
+          f"steps/s{lat}{restarts}", flush=True)
     if graph.log_path:
         print(f"log: {graph.log_path}", flush=True)
     return s
@@ -369,6 +418,11 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p.add_argument("--api-local-port", type=int, default=14580)
     p.add_argument("--gcs-port", type=int, default=14550)
     p.add_argument("--gcs-local-port", type=int, default=18570)
+    p.add_argument("--restart", choices=("no", "on-failure"), default="no",
+                   help="on-failure: start a perception, bridge or policy that exits with a "
+                        "failure again, the run goes on (default: no, the run stops)")
+    p.add_argument("--max-restarts", type=positive_int, default=3, metavar="N",
+                   help="restarts per node with --restart on-failure (default: 3)")
     p.add_argument("-v", "--verbose", action="store_true", help="echo every node's output")
     add_security_args(p)  # --expose: the bridge binds 0.0.0.0 (ground stations elsewhere)
     p.set_defaults(func=func)

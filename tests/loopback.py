@@ -8,7 +8,14 @@ import time
 
 from skyloop.launcher import free_port
 
-__all__ = ["free_port", "interrupt", "wait_for"]
+__all__ = ["free_port", "interrupt", "sigint_default", "wait_for"]
+
+
+def sigint_default() -> None:
+    """``preexec_fn`` for a child the test will Ctrl-C: SIGINT as at an interactive shell
+    (a test run started in the background inherits SIGINT ignored, and a Python started
+    so never raises KeyboardInterrupt)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def wait_for(cond, timeout: float = 10.0, what: str = "condition", poll: float = 0.005) -> None:

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from loopback import free_port, interrupt
+from loopback import free_port, interrupt, sigint_default
 
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
@@ -135,7 +135,7 @@ def stack(tmp_path: Path):
            "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3])]
     env = dict(os.environ, XDG_STATE_HOME=str(tmp_path / "state"))
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                            stderr=subprocess.STDOUT, text=True, preexec_fn=sigint_default)
     bus = Bus.open(SessionConfig(hub=hub))
     goals: list[tuple[float, float, float]] = []
     bus.subscribe(keys.GOAL, "uav1", lambda msg: goals.append(tuple(bm.pose_values(msg)[0])))

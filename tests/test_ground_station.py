@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 import pytest
-from loopback import free_port, interrupt
+from loopback import free_port, interrupt, sigint_default
 
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
@@ -109,7 +109,8 @@ def vehicle(tmp_path: Path):
            "--param", "COM_OF_LOSS_T=0.5", "--param", "SKY_HOLD_LAND_T=1.0"]
     env = dict(os.environ, XDG_STATE_HOME=str(tmp_path))
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=False)
+                            stderr=subprocess.STDOUT, text=True, start_new_session=False,
+                            preexec_fn=sigint_default)
     try:
         yield gcs, tmp_path / "skyloop" / "params-sys1.json"
     finally:

@@ -32,7 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from loopback import free_port, interrupt
+from loopback import free_port, interrupt, sigint_default
 
 pytest.importorskip("MAVProxy", reason="MAVProxy not installed (pip install -e '.[test]')")
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
@@ -140,7 +140,7 @@ def rig(tmp_path: Path):
            "--param", "COM_OF_LOSS_T=0.5"]
     env = dict(os.environ, XDG_STATE_HOME=str(tmp_path / "state"))
     vehicle = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                               stderr=subprocess.STDOUT, text=True)
+                               stderr=subprocess.STDOUT, text=True, preexec_fn=sigint_default)
     listener = Listener(udp[4])
     mavproxy = MavProxy([f"--master=udpin:127.0.0.1:{udp[2]}", f"--out=udp:127.0.0.1:{udp[4]}",
                          "--no-state", f"--state-basedir={tmp_path}"], tmp_path)

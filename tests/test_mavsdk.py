@@ -22,7 +22,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import pytest
-from loopback import free_port, interrupt
+from loopback import free_port, interrupt, sigint_default
 
 pytest.importorskip("mavsdk.asyncio", reason="mavsdk not installed (pip install -e '.[test]')")
 from mavsdk.asyncio import Autopilot, ComponentType, Configuration, Mavsdk  # noqa: E402
@@ -48,7 +48,7 @@ def api_port(tmp_path: Path):
            "--param", "COM_OF_LOSS_T=0.5"]
     env = dict(os.environ, XDG_STATE_HOME=str(tmp_path))
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
+                            stderr=subprocess.STDOUT, text=True, preexec_fn=sigint_default)
     try:
         yield udp[0]
     finally:

@@ -13,7 +13,7 @@ import threading
 import time
 
 import pytest
-from loopback import free_port
+from loopback import free_port, sigint_default
 
 NODES = {  # node -> (arguments, a line it prints once up)
     "sim": (["sim", "--wait-go"], "SKYLOOP-SIM-READY"),
@@ -35,7 +35,7 @@ def test_a_node_stops_within_2_s_of_a_signal(node, sig, tmp_path):
                PYTHONUNBUFFERED="1")
     proc = subprocess.Popen([sys.executable, "-m", "skyloop", *args, *extra.get(node, [])],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, start_new_session=True,
+                            text=True, start_new_session=True, preexec_fn=sigint_default,
                             stdin=subprocess.PIPE)  # the sim's --wait-go waits on it
     lines: list[str] = []
     up = threading.Event()

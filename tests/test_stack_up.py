@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from loopback import free_port
+from loopback import free_port, sigint_default
 
 from bus import messages as m
 from bus.log_reader import EpisodeLogReader, read_episodes
@@ -162,7 +162,8 @@ def test_router_run_is_byte_identical(runs):
 def flying_graph() -> tuple[subprocess.Popen, dict[str, int]]:
     """``skyloop up`` for many episodes, returned once the first episode ended."""
     proc = subprocess.Popen(up_args("--episodes", "50", "--policy", "scripted"), cwd=ROOT,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=sigint_default)
     pids: dict[str, int] = {}
     assert proc.stdout is not None
     for line in proc.stdout:
@@ -252,3 +253,47 @@ def test_an_actor_that_outputs_nan_stops_the_stack_and_says_why(tmp_path):
     assert out.returncode == 1, out.stdout + out.stderr
     assert "node 'policy' exited" in out.stderr and "NaN or inf" in out.stderr, out.stderr
     assert "forked after opening" not in out.stdout + out.stderr
+
+
+def test_restart_on_failure_keeps_the_run_going(tmp_path):
+    """``--restart on-failure``: a SIGKILLed policy, then a SIGKILLed perception, are
+    started again (perception with the policy), the run finishes its episodes, the
+    episodes in progress end ``aborted`` (never merged), and the log holds every
+    episode whole."""
+    out = tmp_path / "restart"
+    proc = subprocess.Popen(up_args("--episodes", "6", "--policy", "scripted", "--restart",
+                                    "on-failure", "--log-dir", str(out), "--json",
+                                    str(out / "summary.json"), "--param", "COM_OF_LOSS_T=0.5",
+                                    "--param", "SKY_HOLD_LAND_T=1.0"),
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    pids: dict[str, int] = {}
+    lines: list[str] = []
+    kills = {1: "policy", 3: "perception"}  # at the 1st and 3rd episode line
+    n = 0
+    assert proc.stdout is not None
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if line.startswith("started "):
+                pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
+            if line.startswith("episode "):
+                n += 1
+                if n in kills:  # as the next episode starts: it is cut short
+                    os.kill(pids[kills[n]], signal.SIGKILL)  # the newest of that name
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    text = "".join(lines)
+    assert proc.returncode == 0, text
+    assert "node 'policy' exited (code -9)" in text and "restarting it (1/3)" in text
+    assert "node 'perception' exited (code -9)" in text
+    assert "restarting 'policy' too (it depends on 'perception')" in text
+    s = json.loads((out / "summary.json").read_text())
+    assert s["restarts"] == {"policy": 2, "perception": 1}, s
+    assert s["episodes"] == 6 and s["aborted"] == 2, text
+    [mcap] = list(out.glob("*/*.mcap"))
+    episodes, report = read_episodes(mcap)
+    assert report.clean and len(episodes) == 6 and all(e.complete for e in episodes)
+    assert sum(e.outcome == "aborted" for e in episodes) == s["aborted"]
