@@ -144,22 +144,29 @@ class SessionConfig:
         return conf
 
 
-_opened = 0  # sessions opened in this process (for the fork warning)
+_sessions: list[zenoh.Session] = []  # opened in this process (for the fork warning)
+
+
+_open_at_fork = 0
+
+
+def _count_before_fork() -> None:  # in the parent: the child touches no session
+    global _open_at_fork
+    _open_at_fork = sum(not s.is_closed() for s in _sessions)
 
 
 def _warn_fork_child() -> None:
-    if _opened:
-        log.warning("process forked after opening %d Zenoh session(s): the child cannot use "
-                    "them; start children with 'spawn' or as new programs", _opened)
+    if _open_at_fork:
+        log.warning("process forked with %d Zenoh session(s) open: the child cannot use "
+                    "them; start children with 'spawn' or as new programs", _open_at_fork)
 
 
-os.register_at_fork(after_in_child=_warn_fork_child)
+os.register_at_fork(before=_count_before_fork, after_in_child=_warn_fork_child)
 
 
 def _open(conf: zenoh.Config) -> zenoh.Session:
-    global _opened
     session = zenoh.open(conf)
-    _opened += 1
+    _sessions[:] = [s for s in _sessions if not s.is_closed()] + [session]
     return session
 
 

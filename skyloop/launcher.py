@@ -52,7 +52,7 @@ from typing import Any
 from bus.node import Bus
 from bus.session import SessionConfig
 from bus.task import TASK
-from skyloop.argtypes import positive_int
+from skyloop.argtypes import positive_float, positive_int
 from skyloop.signals import Stopped, stop_on_sigterm
 
 # The lines the nodes print (sitl.node / policy.node; not imported: --help stays light);
@@ -224,6 +224,7 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
                    *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
         "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
                 str(args.episodes), "--seed", str(args.seed), "--max-steps", str(args.max_steps),
+                "--lockstep-timeout", str(args.lockstep_timeout),
                 *(["--free-flight"] if args.policy == "none" else []),
                 *(["--goals-from-bus"] if args.goals == "gcs" else []), *params],
     }
@@ -285,6 +286,8 @@ def run_up(args: argparse.Namespace) -> int:
         assert sim.proc.stdin is not None
         sim.proc.stdin.write("go\n")
         sim.proc.stdin.flush()
+        bus.close()  # readiness is known; a restart forks, never with a session open
+        bus = None
         while sim.proc.poll() is None:
             if (c := graph.dead(exclude="sim")) is not None:
                 if not _may_restart(graph, c, args):
@@ -418,6 +421,9 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p.add_argument("--api-local-port", type=int, default=14580)
     p.add_argument("--gcs-port", type=int, default=14550)
     p.add_argument("--gcs-local-port", type=int, default=18570)
+    p.add_argument("--lockstep-timeout", type=positive_float, default=2.0, metavar="S",
+                   help="lockstep: how long the sim waits for a step's command before it "
+                        "steps without it and aborts the episode (default: 2)")
     p.add_argument("--restart", choices=("no", "on-failure"), default="no",
                    help="on-failure: start a perception, bridge or policy that exits with a "
                         "failure again, the run goes on (default: no, the run stops)")

@@ -14,7 +14,7 @@ import threading
 from typing import Any
 
 from bus.task import TASK
-from skyloop.argtypes import add_bus_flags, nonnegative_int, positive_int
+from skyloop.argtypes import add_bus_flags, nonnegative_int, positive_float, positive_int
 
 MAVLINK_DEFAULTS = {"api_port": 14540, "api_local_port": 14580, "gcs_port": 14550,
                     "gcs_local_port": 18570}
@@ -265,7 +265,7 @@ def add_stack_commands(sub: Any) -> None:
                    help="vehicle parameter (bus/params.py: COM_OF_LOSS_T, SKY_HOLD_LAND_T, "
                         "MPC_XY_VEL_MAX, MPC_Z_VEL_MAX, MIS_TAKEOFF_ALT, GF_MAX_HOR_DIST, "
                         "SKY_FLIGHT_LVL, SKY_ICO_RADIUS)")
-    p.add_argument("--lockstep-timeout", type=float, default=2.0,
+    p.add_argument("--lockstep-timeout", type=positive_float, default=2.0,
                    help="lockstep: wall seconds to wait for a step's command in OFFBOARD "
                         "before flying without it (default 2)")
     p.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")

@@ -297,3 +297,75 @@ def test_restart_on_failure_keeps_the_run_going(tmp_path):
     episodes, report = read_episodes(mcap)
     assert report.clean and len(episodes) == 6 and all(e.complete for e in episodes)
     assert sum(e.outcome == "aborted" for e in episodes) == s["aborted"]
+
+
+def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
+    """Seeded chaos (bounded: 3 rounds): SIGKILL a random node (policy, perception or
+    bridge) a random moment after an episode line, once the run flies again after the
+    previous round. Each time the vehicle's failsafe
+    acts (setpoints lost -> HOLD, then LAND, seen on the bus; or the vehicle crashed
+    into what it was flying at, before or while braking) until the restarted policy
+    takes over, the launcher names the node and restarts it, and the log holds every
+    episode whole."""
+    from bus import keys
+    from bus.node import Bus
+    from bus.session import SessionConfig
+
+    rng = np.random.default_rng(7)
+    rounds = [(str(rng.choice(["policy", "perception", "bridge"])), float(rng.uniform(0, 1)))
+              for _ in range(3)]
+    out = tmp_path / "chaos"
+    args = up_args("--episodes", "16", "--policy", "scripted", "--restart", "on-failure",
+                   "--log-dir", str(out), "--json", str(out / "summary.json"),
+                   "--lockstep-timeout", "0.5", "--param", "COM_OF_LOSS_T=0.5",
+                   "--param", "SKY_HOLD_LAND_T=0.3")  # hold, land: well before a new policy
+    hub = args[args.index("--hub") + 1]
+    bus = Bus.open(SessionConfig(hub=hub))
+    texts: list[str] = []
+    bus.subscribe(keys.STATUS, "uav1", lambda msg: texts.extend(map(str, msg.event_texts)))
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    pids: dict[str, int] = {}
+    lines: list[str] = []
+    seen: list[int] = []  # len(texts) at each kill
+    flown = 0  # episode lines since the last restart of the policy
+    assert proc.stdout is not None
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if line.startswith("started "):
+                pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
+                flown = 0 if line.split()[1] == "policy" else flown
+            elif line.startswith("episode "):
+                flown += 1
+                # the next kill once the run flies again: the aborted episode, then a
+                # whole one since the last restart
+                if flown == 2 and len(seen) < len(rounds):
+                    victim, delay = rounds[len(seen)]
+                    time.sleep(delay)  # into the next episode
+                    seen.append(len(texts))
+                    os.kill(pids[victim], signal.SIGKILL)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        bus.close()
+    text = "".join(lines)
+    assert proc.returncode == 0, text
+    for k, (victim, _) in enumerate(rounds):
+        assert f"node '{victim}' exited (code -9)" in text, (victim, text)
+        after = texts[seen[k]:seen[k + 1] if k + 1 < len(seen) else None]
+        assert "Offboard" in after, (victim, after)  # the restarted policy took over
+        before = after[:after.index("Offboard")]
+        # until then the vehicle held, then landed; or it crashed into what the scripted
+        # policy flew at, still on the last setpoint or braking in the hold
+        hold, land, crash = ("Failsafe: setpoints lost, holding", "Failsafe: landing",
+                             "Collision: disarmed")
+        seq = [t for t in before if t in (hold, land, crash)]
+        assert seq[:1] == [crash] or seq[:2] in ([hold, land], [hold, crash]), (victim, after)
+    s = json.loads((out / "summary.json").read_text())
+    assert s["episodes"] == 16 and len(seen) == 3 and s["aborted"] >= 1, s
+    assert sum(s["restarts"].values()) >= 3, s
+    [mcap] = list(out.glob("*/*.mcap"))
+    episodes, report = read_episodes(mcap)
+    assert report.clean and len(episodes) == 16 and all(e.complete for e in episodes)
