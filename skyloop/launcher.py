@@ -25,9 +25,10 @@ NAME=VALUE`` goes to the sim (``bus/params.py``). When the sim finishes, the oth
 SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period. If any child
 dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits non-zero,
 naming the node that died and its last log line. With ``--restart on-failure`` a
-perception, bridge or policy that exits with a failure is started again (at most
-``--max-restarts`` times each, named with its last log line each time), with the policy
-when perception or the bridge is restarted (:data:`RESTARTABLE`), and the run goes on:
+perception, bridge, policy or ``--router`` router that exits with a failure is started
+again (at most ``--max-restarts`` times each, named with its last log line each time),
+with the policy when another is restarted (:data:`RESTARTABLE`; Zenoh clients reconnect
+to a restarted router by themselves, in about 2.5 s), and the run goes on:
 the vehicle's failsafe holds meanwhile, the episode in progress ends ``aborted``
 (``sitl.node``) and the next one starts once the restarted policy is in OFFBOARD; the
 summary counts the restarts. The sim and the recorder are never restarted (a new sim
@@ -65,7 +66,8 @@ GRACE_S = 3.0
 #: the nodes ``--restart on-failure`` starts again, and the nodes each one's restart
 #: takes along (rest-for-one, as in a supervision tree: the policy flies on
 #: perception's observations through the bridge's link, and joins the vehicle anew)
-RESTARTABLE = {"perception": ("policy",), "bridge": ("policy",), "policy": ()}
+RESTARTABLE = {"perception": ("policy",), "bridge": ("policy",), "policy": (),
+               "router": ("policy",)}
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -257,7 +259,8 @@ def run_up(args: argparse.Namespace) -> int:
         if args.router:
             env.update(SKYLOOP_ZENOH_MODE="client", SKYLOOP_ZENOH_CONNECT=endpoint)
             env.pop("SKYLOOP_ZENOH_LISTEN", None)
-            router = graph.start("router", ["router", "--listen", endpoint])
+            nodes["router"] = ["router", "--listen", endpoint]
+            router = graph.start("router", nodes["router"])
             if not _wait_listening(endpoint, router, 30.0):
                 return _died(graph, router)
         else:
@@ -425,8 +428,8 @@ def add_up_parser(sub: Any, func: Any) -> None:
                    help="lockstep: how long the sim waits for a step's command before it "
                         "steps without it and aborts the episode (default: 2)")
     p.add_argument("--restart", choices=("no", "on-failure"), default="no",
-                   help="on-failure: start a perception, bridge or policy that exits with a "
-                        "failure again, the run goes on (default: no, the run stops)")
+                   help="on-failure: start a perception, bridge, policy or router that exits "
+                        "with a failure again, the run goes on (default: no, the run stops)")
     p.add_argument("--max-restarts", type=positive_int, default=3, metavar="N",
                    help="restarts per node with --restart on-failure (default: 3)")
     p.add_argument("-v", "--verbose", action="store_true", help="echo every node's output")
