@@ -1,6 +1,7 @@
-"""The episode log: one MCAP file per run, with ROS 2 schemas, in a rosbag2 directory.
+"""The episode log: MCAP files with ROS 2 schemas, in a rosbag2 directory.
 
-Layout: ``<out_dir>/<run>/<run>_0.mcap`` plus ``metadata.yaml`` (rosbag2 version 5, the
+Layout: ``<out_dir>/<run>/<run>_0.mcap`` (and ``_1``, ``_2``, ... when split every N
+episodes) plus ``metadata.yaml`` (rosbag2 version 5, the
 format ROS 2 Humble writes, storage ``mcap``), so ``ros2 bag info/play <run>``,
 ``rosbags`` (the directory or the ``.mcap`` itself), Foxglove and the ``mcap`` CLI all
 open it. MCAP profile ``ros2``, schema encoding ``ros2msg`` (the full concatenated
@@ -80,42 +81,63 @@ def default_run_name() -> str:
 
 
 class EpisodeLogWriter:
-    """Write one run to ``<out_dir>/<run_name>/<run_name>_0.mcap``.
+    """Write one run to ``<out_dir>/<run_name>/<run_name>_0.mcap`` (``_1``, ``_2``, ...
+    with ``split_episodes``).
 
     ``write(topic, msgtype, data, log_time_ns)`` takes CDR bytes on a ROS 2 topic name
     (``/skyloop/<vehicle>/<topic>``); ``write_msg(vehicle, topic, msg, ...)`` encodes a
     message first. Episode boundaries are taken from the ``skyloop_msgs/EpisodeEvent``
-    messages written (see the module docstring). Not thread-safe: one writer thread.
+    messages written (see the module docstring). ``split_episodes`` N > 0: after N
+    episodes have ended in a file and none is open, the file is finished (summary,
+    footer, ``metadata.yaml`` rewritten) and the next one begins, as rosbag2's
+    ``max_bag_duration`` splits a bag: a file never splits an episode, and a writer that
+    dies loses at most its open file's tail. Not thread-safe: one writer thread.
     """
 
     def __init__(self, out_dir: str | os.PathLike[str], run_name: str | None = None, *,
                  chunk_size: int = 2 * 1024 * 1024, compression: str = "none",
-                 fsync: bool = False, metadata: dict[str, str] | None = None) -> None:
+                 fsync: bool = False, metadata: dict[str, str] | None = None,
+                 split_episodes: int = 0) -> None:
         run_name = run_name or default_run_name()
         if not _RUN_NAME_RE.match(run_name):
             raise ValueError(f"run name must match {_RUN_NAME_RE.pattern}: {run_name!r}")
         if compression not in _COMPRESSION:
             raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}")
+        if split_episodes < 0:
+            raise ValueError(f"split_episodes must be >= 0, got {split_episodes}")
         self.run_name = run_name
         self.dir = Path(out_dir) / run_name
         self.dir.mkdir(parents=True, exist_ok=False)
-        self.path = self.dir / f"{run_name}_0.mcap"
         self._fsync = fsync
-        self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._writer = Writer(self._file, chunk_size=chunk_size,
-                              compression=_COMPRESSION[compression], enable_crcs=True)
-        self._writer.start(profile=PROFILE, library=LIBRARY)
-        self._schemas: dict[str, int] = {}
-        self._channels: dict[str, tuple[int, str]] = {}  # topic -> (channel id, msgtype)
+        self._chunk_size, self._compression = chunk_size, _COMPRESSION[compression]
+        self.split_episodes = split_episodes
         self.counts: dict[str, int] = defaultdict(int)  # topic -> messages written
+        self._types: dict[str, str] = {}  # topic -> msgtype, over every file
         self.first_ns: int | None = None
         self.last_ns = 0
+        self.files: list[dict[str, Any]] = []  # rosbag2 "files" entries, one per file
         self._open_eps: dict[str | None, tuple[int, int]] = {}  # vehicle -> (episode, count)
         self.episodes_started = self.episodes_ended = self.bad_events = 0
         self.closed = False
-        run_meta = {"run": run_name, "host": socket.gethostname(), "pid": str(os.getpid()),
-                    "started_unix_ns": str(time.time_ns())}
-        self._writer.add_metadata(RUN_METADATA, {**run_meta, **(metadata or {})})
+        self._run_meta = {"run": run_name, "host": socket.gethostname(),
+                          "pid": str(os.getpid()), "started_unix_ns": str(time.time_ns()),
+                          **(metadata or {})}
+        self._open_file()
+
+    def _open_file(self) -> None:
+        """Begin file ``<run>_<k>.mcap``: its own schemas and channels, the run metadata."""
+        self.path = self.dir / f"{self.run_name}_{len(self.files)}.mcap"
+        self._file: BinaryIO = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._writer = Writer(self._file, chunk_size=self._chunk_size,
+                              compression=self._compression, enable_crcs=True)
+        self._writer.start(profile=PROFILE, library=LIBRARY)
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, tuple[int, str]] = {}  # topic -> (channel id, msgtype)
+        self._between_files = False
+        self.files.append({"path": self.path.name, "first_ns": None, "last_ns": 0,
+                           "message_count": 0, "episodes": 0})
+        self._writer.add_metadata(RUN_METADATA, {**self._run_meta,
+                                                 "file": str(len(self.files) - 1)})
         self._file.flush()
 
     # ------------------------------------------------------------------ channels
@@ -152,6 +174,8 @@ class EpisodeLogWriter:
         """Append one CDR message on ROS 2 topic ``topic``."""
         if self.closed:
             raise RuntimeError("writer is closed")
+        if self._between_files:
+            self._open_file()
         channel_id = self._channel(topic, msgtype)
         vehicle = _vehicle_of(topic)
         event = None
@@ -168,8 +192,13 @@ class EpisodeLogWriter:
         self._writer.add_message(channel_id, log_time_ns, data,
                                  log_time_ns if publish_time_ns is None else publish_time_ns)
         self.counts[topic] += 1
+        self._types[topic] = msgtype
         self.first_ns = log_time_ns if self.first_ns is None else min(self.first_ns, log_time_ns)
         self.last_ns = max(self.last_ns, log_time_ns)
+        f = self.files[-1]
+        f["first_ns"] = log_time_ns if f["first_ns"] is None else min(f["first_ns"], log_time_ns)
+        f["last_ns"] = max(f["last_ns"], log_time_ns)
+        f["message_count"] += 1
         if vehicle in self._open_eps:
             ep, n = self._open_eps[vehicle]
             self._open_eps[vehicle] = (ep, n + 1)
@@ -195,9 +224,17 @@ class EpisodeLogWriter:
             "vehicle": vehicle or "", "episode": str(episode), "outcome": outcome_name(event),
             "steps": str(int(event.steps)), "messages": str(count)})
         self.flush()
+        self.files[-1]["episodes"] += 1
+        if self.split_episodes and not self._open_eps and \
+                self.files[-1]["episodes"] >= self.split_episodes:
+            self._finish_file()
+            self._write_metadata_yaml()
+            self._between_files = True  # the next file begins with the next message
 
     def flush(self) -> None:
         """Close the open chunk and hand everything to the OS (``fsync`` if asked)."""
+        if self._between_files:
+            return
         self._writer.flush()
         if self._fsync:
             os.fsync(self._file.fileno())
@@ -208,39 +245,51 @@ class EpisodeLogWriter:
         if self.closed:
             return
         self.closed = True
-        info = self._bag_metadata()
-        self._writer.add_metadata("rosbag2", {"serialized_metadata": _yaml(info)})
+        if not self._between_files:
+            self._finish_file()
+        self._write_metadata_yaml()
+
+    def _finish_file(self) -> None:
+        """The open file's summary and footer (MCAP ``finish``), flushed and closed."""
+        self._writer.add_metadata("rosbag2", {"serialized_metadata": _yaml(self._bag_metadata())})
         self._writer.finish()
         self._file.flush()
         if self._fsync:
             os.fsync(self._file.fileno())
         self._file.close()
+
+    def _write_metadata_yaml(self) -> None:
         tmp = self.dir / "metadata.yaml.tmp"
-        tmp.write_text(_yaml({"rosbag2_bagfile_information": info}) + "\n")
+        tmp.write_text(_yaml({"rosbag2_bagfile_information": self._bag_metadata()}) + "\n")
         tmp.replace(self.dir / "metadata.yaml")
+
+    @property
+    def paths(self) -> list[Path]:
+        """Every file of the run so far, in order."""
+        return [self.dir / f["path"] for f in self.files]
 
     def _bag_metadata(self) -> dict[str, Any]:
         start = self.first_ns or 0
         duration = max(0, self.last_ns - start)
-        total = sum(self.counts.values())
         info = {
             "version": 5,
             "storage_identifier": "mcap",
-            "relative_file_paths": [self.path.name],
+            "relative_file_paths": [f["path"] for f in self.files],
             "duration": {"nanoseconds": duration},
             "starting_time": {"nanoseconds_since_epoch": start},
-            "message_count": total,
+            "message_count": sum(self.counts.values()),
             "topics_with_message_count": [
                 {"topic_metadata": {"name": topic, "type": msgtype,
                                     "serialization_format": MESSAGE_ENCODING,
                                     "offered_qos_profiles": _QOS_YAML},
                  "message_count": self.counts[topic]}
-                for topic, (_, msgtype) in self._channels.items()],
+                for topic, msgtype in self._types.items()],
             "compression_format": "",
             "compression_mode": "",
-            "files": [{"path": self.path.name,
-                       "starting_time": {"nanoseconds_since_epoch": start},
-                       "duration": {"nanoseconds": duration}, "message_count": total}],
+            "files": [{"path": f["path"],
+                       "starting_time": {"nanoseconds_since_epoch": f["first_ns"] or 0},
+                       "duration": {"nanoseconds": max(0, f["last_ns"] - (f["first_ns"] or 0))},
+                       "message_count": f["message_count"]} for f in self.files],
         }
         return info
 

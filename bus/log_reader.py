@@ -162,19 +162,32 @@ class ReadReport:
                 f"{''.join(', ' + e for e in self.errors)}")
 
 
+def log_files(run_dir: str | Path) -> list[Path]:
+    """The ``*.mcap`` files of a run directory in the order written (``run_0``,
+    ``run_1``, ..., ``run_10``: by the number after the last underscore)."""
+    def number(path: Path) -> tuple[int, str]:
+        tail = path.stem.rsplit("_", 1)[-1]
+        return (int(tail) if tail.isdigit() else -1, path.name)
+
+    return sorted(Path(run_dir).glob("*.mcap"), key=number)
+
+
 class EpisodeLogReader:
     """Iterate a run's log: ``messages()`` in file order, ``episodes()`` grouped.
 
-    ``path``: a run directory (the ``*.mcap`` inside it) or an ``.mcap`` file. The
+    ``path``: an ``.mcap`` file, or a run directory holding one (a split run's files are
+    read one by one: :func:`log_files`). The
     :attr:`report` is complete once an iteration has finished.
     """
 
     def __init__(self, path: str | Path) -> None:
         p = Path(path)
         if p.is_dir():
-            files = sorted(p.glob("*.mcap"))
-            if not files:
-                raise LogReadError(f"no .mcap file in {p}")
+            files = log_files(p)
+            if len(files) != 1:
+                raise LogReadError(f"{p} holds {len(files)} .mcap files"
+                                   + (" (a split run: read each, bus.log_reader.log_files)"
+                                      if files else ""))
             p = files[0]
         elif not p.exists():
             raise LogReadError(f"{p} does not exist")

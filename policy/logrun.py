@@ -23,10 +23,12 @@ NS = 1_000_000_000
 
 
 def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_dir: Path,
-                     vehicle: str = "uav1", run_name: str = "env") -> Path:
-    """Fly ``episodes`` episodes (seeds ``seed + i``) and write them to one MCAP log."""
+                     vehicle: str = "uav1", run_name: str = "env",
+                     split_episodes: int = 0) -> Path:
+    """Fly ``episodes`` episodes (seeds ``seed + i``) and write them to an MCAP log (a
+    new file every ``split_episodes``); returns the (first) file."""
     base = env.unwrapped
-    writer = EpisodeLogWriter(out_dir, run_name=run_name)
+    writer = EpisodeLogWriter(out_dir, run_name=run_name, split_episodes=split_episodes)
     clock = 0  # ns, monotonic across episodes
     scaling = scaling_fields(base.obs_config)
 
@@ -60,4 +62,4 @@ def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_
         put(EPISODE, m.episode_end(i, outcome, k, t, seed=seed + i, scenario=scenario), t)
         clock += int(round((t + 1.0) * NS))
     writer.close()
-    return Path(writer.path)
+    return writer.paths[0]

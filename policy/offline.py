@@ -36,7 +36,7 @@ import torch
 from tqdm import tqdm
 
 from bus.log import read_episodes
-from bus.log_reader import EpisodeLogReader
+from bus.log_reader import EpisodeLogReader, log_files
 from bus.messages import (
     is_action,
     nanoseconds,
@@ -121,9 +121,12 @@ def body_commands(path: Path) -> dict[int, tuple]:
 
 def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
               config: RewardConfig) -> LogReport:
-    """Fill ``buffer`` with every complete episode of ``paths``; count what is skipped."""
+    """Fill ``buffer`` with every complete episode of ``paths`` (MCAP files, or run
+    directories: their ``*.mcap`` files in order, e.g. a log split every N episodes);
+    count what is skipped."""
     report = LogReport()
-    for path in paths:
+    files = [f for p in map(Path, paths) for f in (log_files(p) if p.is_dir() else [p])]
+    for path in files:
         report.files.append(str(path))
         try:
             episodes, read = read_episodes(path, include_incomplete=True)

@@ -53,7 +53,7 @@ from typing import Any
 from bus.node import Bus
 from bus.session import SessionConfig
 from bus.task import TASK
-from skyloop.argtypes import positive_float, positive_int
+from skyloop.argtypes import nonnegative_int, positive_float, positive_int
 from skyloop.signals import Stopped, stop_on_sigterm
 
 # The lines the nodes print (sitl.node / policy.node; not imported: --help stays light);
@@ -270,7 +270,8 @@ def run_up(args: argparse.Namespace) -> int:
         # for "go" until the recorder subscribed and the policy is in OFFBOARD.
         if args.log_dir:
             graph.start("record", ["record", "--out", str(args.log_dir), "--vehicle",
-                                   args.vehicle])
+                                   args.vehicle, "--split-episodes",
+                                   str(args.log_split_episodes)])
         for name in ("perception", "bridge"):
             graph.start(name, nodes[name])
         if args.policy != "none":
@@ -416,6 +417,8 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p.add_argument("--hub", default=None,
                    help="Zenoh endpoint of the hub/router (default: a free loopback port)")
     p.add_argument("--log-dir", default=None, help="record the run (MCAP) under this dir")
+    p.add_argument("--log-split-episodes", type=nonnegative_int, default=0, metavar="N",
+                   help="with --log-dir: a new MCAP file every N episodes (default 0: one)")
     p.add_argument("--json", default=None, help="write the summary here")
     p.add_argument("--vehicle", default="uav1")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",

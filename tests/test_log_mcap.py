@@ -24,6 +24,7 @@ from bus.log import (
     read_episodes,
     recover_log,
 )
+from bus.log_reader import log_files
 from bus.mcap_scan import CHUNK, MAGIC, records
 
 REPO = Path(__file__).resolve().parents[1]
@@ -89,6 +90,38 @@ def test_opens_with_mcap_and_rosbags(tmp_path, compression):
     with Rosbag2Reader(run) as bag:  # metadata.yaml
         assert bag.message_count == sum(expected.values())
         assert {t: i.msgcount for t, i in bag.topics.items()} == expected
+
+
+def test_split_every_n_episodes_never_splits_an_episode(tmp_path):
+    """``split_episodes=2``: 5 episodes in 3 files (2, 2, 1), each a finished MCAP of
+    whole episodes; metadata.yaml lists the three and rosbags reads the directory as
+    one bag."""
+    with EpisodeLogWriter(tmp_path, "run", split_episodes=2) as w:
+        t = 1_000
+        for ep in range(5):
+            t = write_episode(w, ep, t)
+            if ep == 2:  # between episodes: messages outside any episode stay in order
+                w.write_msg("uav1", keys.ACTOR, m.actor_weights(b"w", 1), t)
+    files = sorted(w.dir.glob("*.mcap"))
+    assert [f.name for f in files] == ["run_0.mcap", "run_1.mcap", "run_2.mcap"]
+    per_file = []
+    for f in files:
+        episodes, report = read_episodes(f)
+        assert report.clean and all(e.complete for e in episodes)
+        per_file.append([e.index for e in episodes])
+        with open(f, "rb") as fh:  # finished: summary and footer
+            assert make_reader(fh).get_summary() is not None
+    assert per_file == [[0, 1], [2, 3], [4]]
+    with Rosbag2Reader(w.dir) as bag:  # metadata.yaml lists all three, in order
+        assert bag.message_count == 5 * PER_EPISODE + 1
+        assert sum(1 for _ in bag.messages()) == 5 * PER_EPISODE + 1
+    with AnyReader([w.dir]) as ar:
+        assert sum(1 for _ in ar.messages()) == 5 * PER_EPISODE + 1
+    assert log_files(w.dir) == files
+    with pytest.raises(LogReadError, match="holds 3 .mcap files"):  # never just the first
+        read_episodes(w.dir)
+    with pytest.raises(ValueError, match="split_episodes"):
+        EpisodeLogWriter(tmp_path, "bad", split_episodes=-1)
 
 
 # ------------------------------------------------------------------ episodes

@@ -68,6 +68,16 @@ def test_rewards_use_the_scaling_the_log_records(tmp_path):
                                    atol=1e-4)
 
 
+def test_a_split_run_directory_is_read_whole(tmp_path):
+    path = log_env_episodes(UavNavEnv(scenario="valley"), StraightLineController(), 3, SEED,
+                            tmp_path, split_episodes=1)
+    assert len(list(path.parent.glob("*.mcap"))) == 3
+    buf = ReplayBuffer(1000, (3, 35), 4)
+    report = load_logs([path.parent], buf, make_goal_reward("tr", RewardConfig()),
+                       RewardConfig())
+    assert report.episodes_used == 3 and len(report.files) == 3
+
+
 def test_one_log_serves_every_goal_reward(logged):
     path, truth = logged
     n = sum(len(r) for r, _, _ in truth)
