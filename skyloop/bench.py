@@ -16,7 +16,9 @@ import time
 from pathlib import Path
 
 MODULES = ["bench_flight", "bench_lidar", "bench_perception", "bench_env", "bench_td3",
-           "bench_train", "bench_stack", "bench_record", "bench_mavlink_fuzz"]
+           "bench_train", "bench_stack", "bench_record", "bench_mavlink_fuzz", "bench_soak"]
+#: run only when named in ``--only`` (an hour by default)
+ON_REQUEST = {"bench_soak"}
 
 
 def machine() -> dict:
@@ -38,7 +40,8 @@ def _fmt(value) -> str:
     return str(value)
 
 
-def run_bench(quick: bool, json_path: Path | None, only: list[str] | None = None) -> dict:
+def run_bench(quick: bool, json_path: Path | None, only: list[str] | None = None,
+              minutes: float | None = None) -> dict:
     # One core: the goals are stated per core, and peers get the same.
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("NUMBA_NUM_THREADS", "1")
@@ -49,7 +52,8 @@ def run_bench(quick: bool, json_path: Path | None, only: list[str] | None = None
     print(f"command: {report['command']}  (each number: median of several repeats)")
     t_start = time.perf_counter()
     for name in MODULES:
-        if only and name not in only and name.removeprefix("bench_") not in only:
+        named = bool(only) and (name in only or name.removeprefix("bench_") in only)
+        if (only and not named) or (name in ON_REQUEST and not named):
             continue
         try:
             module = importlib.import_module(f"benchmarks.{name}")
@@ -57,7 +61,7 @@ def run_bench(quick: bool, json_path: Path | None, only: list[str] | None = None
             print(f"  {name}: skipped ({exc})")
             continue
         t0 = time.perf_counter()
-        numbers = module.run(quick)
+        numbers = module.run(quick, minutes) if name == "bench_soak" else module.run(quick)
         report["peers"].update(numbers.pop("peers", {}))
         report["results"].update(numbers)
         print(f"  {name} done in {time.perf_counter() - t0:.1f} s")

@@ -33,7 +33,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from skyloop.bench import run_bench
 
     run_bench(quick=args.quick, json_path=Path(args.json) if args.json else None,
-              only=args.only)
+              only=args.only, minutes=args.minutes)
     return 0
 
 
@@ -154,7 +154,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="measure speed against peers; prints a table, writes JSON")
     p.add_argument("--quick", action="store_true", help="a short run (under 45 s)")
     p.add_argument("--json", help="write the results as JSON here")
-    p.add_argument("--only", nargs="*", help="run only these benchmark modules")
+    p.add_argument("--only", nargs="*", help="run only these benchmark modules ('soak' "
+                                             "runs only when named)")
+    p.add_argument("--minutes", type=float, default=None,
+                   help="with --only soak: how long the stack runs (default 60; --quick 2)")
     p.set_defaults(func=_cmd_bench)
 
     p = sub.add_parser("log", help="episode logs (MCAP): repair")
