@@ -276,6 +276,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", default=None,
                    help="Zenoh endpoints to connect to, comma-separated")
     p.add_argument("--listen", default=None, help="Zenoh endpoints to listen on")
+    p.add_argument("--zenoh-config", default=None, metavar="FILE",
+                   help="a Zenoh configuration file: TLS, access control "
+                        "(default: $ZENOH_CONFIG)")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     return p
 
@@ -288,7 +291,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"argument --split-episodes: must be 0 or more, got {args.split_episodes}")
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    cfg = SessionConfig.from_flags(args.mode, args.connect, args.listen)
+    cfg = SessionConfig.from_flags(args.mode, args.connect, args.listen, args.zenoh_config)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

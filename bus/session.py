@@ -55,6 +55,7 @@ MODES = ("peer", "client", "router")
 ENV_MODE = "SKYLOOP_ZENOH_MODE"
 ENV_CONNECT = "SKYLOOP_ZENOH_CONNECT"
 ENV_LISTEN = "SKYLOOP_ZENOH_LISTEN"
+ENV_CONFIG = "ZENOH_CONFIG"  # the variable Zenoh's own tools read
 ENV_HUB = "SKYLOOP_ZENOH_HUB"
 
 
@@ -84,6 +85,10 @@ class SessionConfig:
     multicast_scouting: bool = False
     connect_timeout_s: float | None = None
     extra: Mapping[str, str] = field(default_factory=dict)  # json5 path -> json5 value
+    #: a standard Zenoh configuration file (JSON5) as the base: TLS certificates,
+    #: authentication, access control (``skyloop certs`` writes them); its mode and
+    #: endpoints give way to the fields above
+    config_file: str | None = None
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -107,16 +112,20 @@ class SessionConfig:
             changes["listen"] = _endpoints(env[ENV_LISTEN])
         if env.get(ENV_HUB, "").strip():
             changes["hub"] = env[ENV_HUB].strip()
+        if env.get(ENV_CONFIG, "").strip():
+            changes["config_file"] = env[ENV_CONFIG].strip()
         return replace(cfg, **changes) if changes else cfg
 
     @classmethod
     def from_flags(cls, mode: str | None = None, connect: str | None = None,
-                   listen: str | None = None) -> SessionConfig:
-        """``from_env`` with the command-line flags ``--mode/--connect/--listen`` (those
-        given) winning over the environment."""
+                   listen: str | None = None, zenoh_config: str | None = None
+                   ) -> SessionConfig:
+        """``from_env`` with the command-line flags ``--mode/--connect/--listen/
+        --zenoh-config`` (those given) winning over the environment."""
         cfg = cls.from_env()
         overrides = {k: v for k, v in (("mode", mode), ("connect", connect),
-                                       ("listen", listen)) if v is not None}
+                                       ("listen", listen), ("config_file", zenoh_config))
+                     if v is not None}
         return replace(cfg, **overrides) if overrides else cfg
 
     @property
@@ -132,7 +141,7 @@ class SessionConfig:
             listen = self.listen or ((self.hub,) if self.mode == "router" else ())
         if connect is None:
             connect = self.connect or ((self.hub,) if self.mode == "client" else ())
-        conf = zenoh.Config()
+        conf = self._base_config()
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
@@ -142,6 +151,19 @@ class SessionConfig:
         for path, value in self.extra.items():
             conf.insert_json5(path, value)
         return conf
+
+
+    def _base_config(self) -> zenoh.Config:
+        if self.config_file is None:
+            return zenoh.Config()
+        if not os.path.isfile(self.config_file):
+            raise ValueError(f"Zenoh config {self.config_file} (--zenoh-config or "
+                             f"{ENV_CONFIG}): no such file")
+        try:
+            return zenoh.Config.from_file(self.config_file)
+        except Exception as exc:  # zenoh's error spans lines: keep the first
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise ValueError(f"Zenoh config {self.config_file}: {first}") from None
 
 
 _sessions: list[zenoh.Session] = []  # opened in this process (for the fork warning)
@@ -199,10 +221,11 @@ def open_router(listen: Sequence[str] | str = (HUB,),
 
 
 def run_router(listen: Sequence[str] | str = (HUB,),
-               stop_event: threading.Event | None = None) -> None:
+               stop_event: threading.Event | None = None,
+               cfg: SessionConfig | None = None) -> None:
     """Run a Zenoh router (a Python session in router mode; no ``zenohd`` needed) until
     ``stop_event`` is set or the process is interrupted."""
-    session = open_router(listen)
+    session = open_router(listen, cfg)
     log.info("zenoh router %s listening on %s", session.info.zid(), list(_endpoints(listen)))
     stop = stop_event if stop_event is not None else threading.Event()
     try:
@@ -227,10 +250,17 @@ def router_main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--listen", default=os.environ.get(ENV_LISTEN) or HUB,
                         help=f"endpoints, comma-separated (default: $SKYLOOP_ZENOH_LISTEN "
                              f"or {HUB}; use tcp/0.0.0.0:7447 to accept other hosts)")
+    parser.add_argument("--zenoh-config", default=os.environ.get(ENV_CONFIG) or None,
+                        metavar="FILE", help=f"a Zenoh configuration file: TLS, access "
+                                             f"control (default: ${ENV_CONFIG})")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    run_router(_endpoints(args.listen), stop)
+    try:
+        run_router(_endpoints(args.listen), stop,
+                   SessionConfig(mode="router", config_file=args.zenoh_config))
+    except ValueError as err:
+        parser.exit(2, f"skyloop router: {err}\n")
     return 0

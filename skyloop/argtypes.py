@@ -50,4 +50,7 @@ def add_bus_flags(p: argparse.ArgumentParser, vehicle: bool = True) -> None:
                    help="Zenoh mode (default: $SKYLOOP_ZENOH_MODE or peer)")
     p.add_argument("--connect", default=None, help="Zenoh endpoints, comma-separated")
     p.add_argument("--listen", default=None, help="Zenoh endpoints to listen on")
+    p.add_argument("--zenoh-config", default=None, metavar="FILE",
+                   help="a Zenoh configuration file: TLS certificates, access control "
+                        "(default: $ZENOH_CONFIG; `skyloop certs` writes them)")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")

@@ -234,7 +234,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv and argv[0] in ("record", "router"):  # their own parsers take every flag
+    if argv and argv[0] in ("record", "router", "certs"):  # their own parsers take every flag
         from skyloop.stack_cli import passthrough
 
         return passthrough(argv[0], argv[1:])

@@ -43,7 +43,8 @@ def cmd_learner(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    bus = Bus.open(SessionConfig.from_flags(args.mode, args.connect, args.listen))
+    bus = Bus.open(SessionConfig.from_flags(args.mode, args.connect, args.listen,
+                                               args.zenoh_config))
     try:
         learner = Learner(bus, config, Path(args.out),
                           emit=lambda line: print(line, flush=True))

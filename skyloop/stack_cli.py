@@ -35,7 +35,8 @@ def _open_bus(args: argparse.Namespace) -> Any:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s",
                         stream=sys.stderr)
-    return Bus.open(SessionConfig.from_flags(args.mode, args.connect, args.listen))
+    return Bus.open(SessionConfig.from_flags(args.mode, args.connect, args.listen,
+                                               args.zenoh_config))
 
 
 def _stop_event() -> threading.Event:
@@ -219,11 +220,16 @@ def cmd_bridge(args: argparse.Namespace) -> int:
 
 
 def passthrough(name: str, argv: list[str]) -> int:
-    """``record`` and ``router`` parse their own flags (``bus.record``, ``bus.session``)."""
+    """``record``, ``router`` and ``certs`` parse their own flags (``bus.record``,
+    ``bus.session``, ``bus.certs``)."""
     if name == "record":
         from bus.record import main
 
         return main(argv)
+    if name == "certs":
+        from bus.certs import main as certs_main
+
+        return certs_main(argv)
     from bus.session import router_main
 
     return router_main(argv)
@@ -235,6 +241,10 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 def cmd_router(args: argparse.Namespace) -> int:
     return passthrough("router", args.rest)
+
+
+def cmd_certs(args: argparse.Namespace) -> int:
+    return passthrough("certs", args.rest)
 
 
 def cmd_up(args: argparse.Namespace) -> int:
@@ -329,6 +339,12 @@ def add_stack_commands(sub: Any) -> None:
                        add_help=False)
     p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=cmd_router)
+
+    p = sub.add_parser("certs", help="a CA, node certificates and Zenoh configs for a bus "
+                                     "with mutual TLS and access control (see 'certs --help')",
+                       add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=cmd_certs)
 
     from skyloop.launcher import add_up_parser
 
