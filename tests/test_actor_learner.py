@@ -41,7 +41,9 @@ from skyloop.launcher import SIM_READY_LINE
 
 ROOT = Path(__file__).resolve().parent.parent
 VEHICLES = ("uav1", "uav2")
-EPISODES, MAX_STEPS = 8, 20
+# enough episodes that the learner's first versions arrive before the last ones start, even
+# on a loaded machine (with 8, a loaded run once saw its first version after the last)
+EPISODES, MAX_STEPS = 14, 20
 
 
 class Proc:
