@@ -180,6 +180,28 @@ def assert_all_gone(pids: dict[str, int]) -> None:
             os.kill(pid, 0)
 
 
+def watch_up(args: list[str], on_line, timeout: float = 60.0) -> tuple[int, str]:
+    """Run ``skyloop up`` with ``args``; ``on_line(line, pids)`` sees each output line
+    (``pids``: the newest pid of each node, from the "started" lines). Returns the exit
+    code and the whole output."""
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    pids: dict[str, int] = {}
+    lines: list[str] = []
+    assert proc.stdout is not None
+    try:
+        for line in proc.stdout:
+            lines.append(line)
+            if line.startswith("started "):
+                pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
+            on_line(line, pids)
+        proc.wait(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, "".join(lines)
+
+
 def test_child_death_stops_the_graph():
     proc, pids = flying_graph()
     try:
@@ -261,32 +283,20 @@ def test_restart_on_failure_keeps_the_run_going(tmp_path):
     episodes in progress end ``aborted`` (never merged), and the log holds every
     episode whole."""
     out = tmp_path / "restart"
-    proc = subprocess.Popen(up_args("--episodes", "6", "--policy", "scripted", "--restart",
-                                    "on-failure", "--log-dir", str(out), "--json",
-                                    str(out / "summary.json"), "--param", "COM_OF_LOSS_T=0.5",
-                                    "--param", "SKY_HOLD_LAND_T=1.0"),
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
-    pids: dict[str, int] = {}
-    lines: list[str] = []
     kills = {1: "policy", 3: "perception"}  # at the 1st and 3rd episode line
-    n = 0
-    assert proc.stdout is not None
-    try:
-        for line in proc.stdout:
-            lines.append(line)
-            if line.startswith("started "):
-                pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
-            if line.startswith("episode "):
-                n += 1
-                if n in kills:  # as the next episode starts: it is cut short
-                    os.kill(pids[kills[n]], signal.SIGKILL)  # the newest of that name
-        proc.wait(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    text = "".join(lines)
-    assert proc.returncode == 0, text
+    ended = []
+
+    def on_line(line: str, pids: dict[str, int]) -> None:
+        if line.startswith("episode "):
+            ended.append(line)
+            if len(ended) in kills:  # as the next episode starts: it is cut short
+                os.kill(pids[kills[len(ended)]], signal.SIGKILL)
+
+    code, text = watch_up(up_args("--episodes", "6", "--policy", "scripted", "--restart",
+                                  "on-failure", "--log-dir", str(out), "--json",
+                                  str(out / "summary.json"), "--param", "COM_OF_LOSS_T=0.5",
+                                  "--param", "SKY_HOLD_LAND_T=1.0"), on_line)
+    assert code == 0, text
     assert "node 'policy' exited (code -9)" in text and "restarting it (1/3)" in text
     assert "node 'perception' exited (code -9)" in text
     assert "restarting 'policy' too (it depends on 'perception')" in text
@@ -302,11 +312,10 @@ def test_restart_on_failure_keeps_the_run_going(tmp_path):
 def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     """Seeded chaos (bounded: 3 rounds): SIGKILL a random node (policy, perception or
     bridge) a random moment after an episode line, once the run flies again after the
-    previous round. Each time the vehicle's failsafe
-    acts (setpoints lost -> HOLD, then LAND, seen on the bus; or the vehicle crashed
-    into what it was flying at, before or while braking) until the restarted policy
-    takes over, the launcher names the node and restarts it, and the log holds every
-    episode whole."""
+    previous round. Each time the vehicle's failsafe acts (setpoints lost -> HOLD, then
+    LAND, seen on the bus; or the vehicle crashed into what it was flying at, before or
+    while braking) until the restarted policy takes over, the launcher names the node
+    and restarts it, and the log holds every episode whole."""
     from bus import keys
     from bus.node import Bus
     from bus.session import SessionConfig
@@ -323,35 +332,27 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     bus = Bus.open(SessionConfig(hub=hub))
     texts: list[str] = []
     bus.subscribe(keys.STATUS, "uav1", lambda msg: texts.extend(map(str, msg.event_texts)))
-    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
-    pids: dict[str, int] = {}
-    lines: list[str] = []
     seen: list[int] = []  # len(texts) at each kill
-    flown = 0  # episode lines since the last restart of the policy
-    assert proc.stdout is not None
+    flown = [0]  # episode lines since the last restart of the policy
+
+    def on_line(line: str, pids: dict[str, int]) -> None:
+        if line.startswith("started policy"):
+            flown[0] = 0
+        elif line.startswith("episode "):
+            flown[0] += 1
+            # the next kill once the run flies again: the aborted episode, then a whole
+            # one since the last restart
+            if flown[0] == 2 and len(seen) < len(rounds):
+                victim, delay = rounds[len(seen)]
+                time.sleep(delay)  # into the next episode
+                seen.append(len(texts))
+                os.kill(pids[victim], signal.SIGKILL)
+
     try:
-        for line in proc.stdout:
-            lines.append(line)
-            if line.startswith("started "):
-                pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
-                flown = 0 if line.split()[1] == "policy" else flown
-            elif line.startswith("episode "):
-                flown += 1
-                # the next kill once the run flies again: the aborted episode, then a
-                # whole one since the last restart
-                if flown == 2 and len(seen) < len(rounds):
-                    victim, delay = rounds[len(seen)]
-                    time.sleep(delay)  # into the next episode
-                    seen.append(len(texts))
-                    os.kill(pids[victim], signal.SIGKILL)
-        proc.wait(timeout=60)
+        code, text = watch_up(args, on_line)
     finally:
-        if proc.poll() is None:
-            proc.kill()
         bus.close()
-    text = "".join(lines)
-    assert proc.returncode == 0, text
+    assert code == 0, text
     for k, (victim, _) in enumerate(rounds):
         assert f"node '{victim}' exited (code -9)" in text, (victim, text)
         after = texts[seen[k]:seen[k + 1] if k + 1 < len(seen) else None]
@@ -378,36 +379,27 @@ def test_a_restarted_router_lets_the_run_go_on(tmp_path):
     log (the recorder is a client too), but the one whose end was in flight as the
     router died."""
     out = tmp_path / "router"
-    proc = subprocess.Popen(up_args("--router", "--episodes", "8", "--policy", "scripted",
-                                    "--restart", "on-failure", "--lockstep-timeout", "0.5",
-                                    "--log-dir", str(out), "--json", str(out / "s.json")),
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
-    pids: dict[str, int] = {}
-    lines: list[str] = []
-    assert proc.stdout is not None
-    try:
-        for line in proc.stdout:
-            lines.append(line)
-            if line.startswith("started "):
-                pids.setdefault(line.split()[1], int(line.split("pid ")[1].rstrip(")\n")))
-            if line.startswith("episode 1 "):
+    ended: list[str] = []
+
+    def on_line(line: str, pids: dict[str, int]) -> None:
+        if line.startswith("episode "):
+            ended.append(line)
+            if len(ended) == 2:  # as episode 2 starts
                 os.kill(pids["router"], signal.SIGKILL)
-        proc.wait(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    text = "".join(lines)
-    assert proc.returncode == 0, text
+
+    code, text = watch_up(up_args("--router", "--episodes", "8", "--policy", "scripted",
+                                  "--restart", "on-failure", "--lockstep-timeout", "0.5",
+                                  "--log-dir", str(out), "--json", str(out / "s.json")),
+                          on_line)
+    assert code == 0, text
     assert "node 'router' exited (code -9)" in text
     s = json.loads((out / "s.json").read_text())
     assert s["episodes"] == 8 and s["restarts"] == {"router": 1, "policy": 1}, s
     assert s["aborted"] >= 1, text  # the episode the outage cut
-    ended = {int(x.split()[1]): x.split(": ")[1].split()[0]
-             for x in lines if x.startswith("episode ")}
+    outcomes = {int(x.split()[1]): x.split(": ")[1].split()[0] for x in ended}
     [mcap] = list(out.glob("*/*.mcap"))
     logged = {e.index: e for e in read_episodes(mcap)[0]}
-    for i, outcome in ended.items():
+    for i, outcome in outcomes.items():
         # episode 1 ended as the router died: its last messages may have been in flight
         # through it (lost with it, as on any broker); every other one is whole
         if outcome != "aborted" and i != 1:
