@@ -46,7 +46,7 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -112,11 +112,15 @@ class Graph:
         self.log_path: str | None = None
         self.ready = {name: threading.Event() for name in ("policy", "record", "sim")}
         self.restarts: collections.Counter[str] = collections.Counter()
+        self.zenoh_configs: Path | None = None  # ``skyloop certs`` output: <node>.json5
         self._lock = threading.Lock()
 
     def start(self, name: str, args: list[str], stdin: int | None = None) -> Child:
+        env = self.env
+        if self.zenoh_configs is not None:  # each node presents its own certificate
+            env = dict(env, ZENOH_CONFIG=str(self.zenoh_configs / f"{name}.json5"))
         proc = subprocess.Popen(
-            [sys.executable, "-m", "skyloop", *args], env=self.env, stdin=stdin,
+            [sys.executable, "-m", "skyloop", *args], env=env, stdin=stdin,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT, text=True, bufsize=1, start_new_session=True,
             preexec_fn=_pdeathsig)
@@ -248,10 +252,22 @@ def run_up(args: argparse.Namespace) -> int:
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     env.setdefault("MAVLINK20", "1")
-    endpoint = args.hub or f"tcp/127.0.0.1:{free_port()}"
+    secure = args.zenoh_config_dir is not None
+    if secure and not args.router:
+        raise ValueError("--zenoh-config-dir needs --router (mutual TLS through the router)")
+    endpoint = args.hub or \
+        f"{'tls/localhost' if secure else 'tcp/127.0.0.1'}:{free_port()}"
     ports = {"api": args.api_port, "api_local": args.api_local_port, "gcs": args.gcs_port,
              "gcs_local": args.gcs_local_port}
     graph = Graph(env, args.verbose)
+    if secure:
+        graph.zenoh_configs = Path(args.zenoh_config_dir).resolve()
+        missing = [n for n in ("router", "launcher", *nodes_of(args))
+                   if not (graph.zenoh_configs / f"{n}.json5").is_file()]
+        if missing:
+            raise ValueError(f"--zenoh-config-dir {args.zenoh_config_dir}: no "
+                             f"{', '.join(m + '.json5' for m in missing)} (skyloop certs "
+                             f"writes them)")
     nodes = _node_args(args, ports)
     t0 = time.monotonic()
     bus: Bus | None = None
@@ -280,7 +296,8 @@ def run_up(args: argparse.Namespace) -> int:
         # The launcher watches the nodes' readiness tokens from a session of its own,
         # opened after the last child started (no fork with a session open); the watch
         # sees tokens declared before it too.
-        bus = Bus.open(SessionConfig.from_env(env))
+        bus = Bus.open(replace(SessionConfig.from_env(env), config_file=str(
+            graph.zenoh_configs / "launcher.json5")) if secure else SessionConfig.from_env(env))
         bus.watch_ready(args.vehicle, graph.on_ready)  # this stack's vehicle only
         waits = [("sim", 120.0)] + ([("record", 60.0)] if args.log_dir else []) + \
             ([("policy", 120.0)] if args.policy != "none" else [])
@@ -332,6 +349,12 @@ def run_up(args: argparse.Namespace) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2))
     return 0
+
+
+def nodes_of(args: argparse.Namespace) -> list[str]:
+    """The nodes ``skyloop up`` starts for these flags (the router aside)."""
+    return [*(["record"] if args.log_dir else []), "perception", "bridge",
+            *(["policy"] if args.policy != "none" else []), "sim"]
 
 
 def _wait_listening(endpoint: str, child: Child, timeout: float) -> bool:
@@ -414,6 +437,9 @@ def add_up_parser(sub: Any, func: Any) -> None:
     g.add_argument("--realtime", dest="realtime", action="store_true")
     p.add_argument("--router", action="store_true",
                    help="start a Python Zenoh router; every node in client mode")
+    p.add_argument("--zenoh-config-dir", default=None, metavar="DIR",
+                   help="with --router: mutual TLS and access control on the bus, each node "
+                        "with DIR/<node>.json5 (what `skyloop certs --out DIR` writes)")
     p.add_argument("--hub", default=None,
                    help="Zenoh endpoint of the hub/router (default: a free loopback port)")
     p.add_argument("--log-dir", default=None, help="record the run (MCAP) under this dir")

@@ -5,6 +5,7 @@ access control by certificate common name), nodes as clients with theirs."""
 from __future__ import annotations
 
 import shutil
+import socket
 import threading
 import time
 
@@ -80,3 +81,30 @@ def test_a_bad_config_file_is_named(tmp_path):
     for path, why in ((str(bad), "bad.json5"), (str(tmp_path / "none.json5"), "no such file")):
         with pytest.raises(ValueError, match=why):
             SessionConfig(config_file=path).zenoh_config()
+
+
+def test_the_stack_flies_on_a_secured_bus(certs, tmp_path):
+    """``skyloop up --router --zenoh-config-dir DIR``: the router on a tls endpoint, every
+    node with its own certificate, the bridge's setpoints allowed: episodes fly."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    full = make_certs(tmp_path / "certs")  # every node of a stack, the launcher too
+    root = Path(__file__).resolve().parent.parent
+    udp = [str(free_port(socket.SOCK_DGRAM)) for _ in range(4)]
+    cmd = [sys.executable, "-m", "skyloop", "up", "--router", "--zenoh-config-dir", str(full),
+           "--episodes", "1", "--policy", "scripted", "--json", str(tmp_path / "s.json"),
+           "--api-port", udp[0], "--api-local-port", udp[1], "--gcs-port", udp[2],
+           "--gcs-local-port", udp[3]]
+    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert json.loads((tmp_path / "s.json").read_text())["episodes"] == 1
+    no_router = subprocess.run([sys.executable, "-m", "skyloop", "up", "--zenoh-config-dir",
+                                str(full)], cwd=root, capture_output=True, text=True, timeout=60)
+    assert no_router.returncode == 2 and "needs --router" in no_router.stderr
+    partial = subprocess.run([sys.executable, "-m", "skyloop", "up", "--router",
+                              "--zenoh-config-dir", str(certs)], cwd=root, capture_output=True,
+                             text=True, timeout=60)  # no launcher/policy/... configs there
+    assert partial.returncode == 2 and "launcher.json5" in partial.stderr, partial.stderr
