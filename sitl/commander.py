@@ -103,6 +103,7 @@ class Commander:
         self._failsafe_since = 0.0
         self._armed_since = now
         self._last_setpoint_time = -math.inf
+        self._offboard_asked = -math.inf
         self._sp = (0.0, 0.0, 0.0, 0.0)
         self._sp_body = False
         self._sp_yaw: float | None = None
@@ -192,9 +193,10 @@ class Commander:
         return True
 
     @property
-    def last_setpoint_time(self) -> float:
-        """When the newest setpoint came (commander time; -inf: none yet)."""
-        return self._last_setpoint_time
+    def offboard_asked(self) -> float:
+        """When OFFBOARD was last asked for and granted (commander time; -inf: never; an
+        ask while in OFFBOARD counts too: a restarted companion asks once it flies)."""
+        return self._offboard_asked
 
     def offboard_available(self, now: float) -> bool:
         """True if the newest setpoint is no older than ``setpoint_timeout`` (see the
@@ -310,6 +312,7 @@ class Commander:
             if not self.offboard_available(now):
                 return self._refuse(now, "no_setpoint_stream", "Offboard denied: no setpoints")
             self._failsafe = None
+            self._offboard_asked = now
             if self._state != State.OFFBOARD:
                 self._go(now, State.OFFBOARD, "Offboard")
             return ACCEPTED

@@ -22,8 +22,8 @@ the commander is in OFFBOARD before go, the node waits (nothing answers steps ye
   as setpoint loss, a ground station's mode change), or whose lockstep command for a step
   did not come within ``lockstep_timeout_s``, ends ``aborted`` at once, never merged
   with what follows; the node then flies control steps outside any episode (the
-  failsafe goes on: HOLD, LAND) until the vehicle is in OFFBOARD with a new setpoint,
-  e.g. from a restarted policy (``skyloop up --restart on-failure``). Outcomes follow the env:
+  failsafe goes on: HOLD, LAND) until OFFBOARD is asked for again, e.g. by a restarted
+  policy (``skyloop up --restart on-failure``). Outcomes follow the env:
   collision is terminal; the goal is reached within ``goal_radius`` (2 m) at an
   altitude not above ``goal_max_altitude`` (6 m); ``max_steps`` (300) is a timeout.
 * Free flight (``free_flight``, ``skyloop up --policy none``): the vehicle stays where
@@ -131,6 +131,7 @@ class SimNode(StepLoop):
         path = [s.vehicle.truth.position.copy()]
         flown = False  # the episode has flown OFFBOARD (seeded: it is placed in OFFBOARD)
         missed = self.missed
+        self._missing = False  # a new episode waits the full lockstep timeout again
         while True:
             collided = self.tick(i)
             truth = s.vehicle.truth
@@ -146,6 +147,10 @@ class SimNode(StepLoop):
                 outcome = "aborted"
                 if broken:
                     self._rejoin_after = self.now()
+                    # the step whose command did not come: its late answer means the
+                    # policy is alive, only slow (a loaded machine), so flying goes on
+                    self._late_stamp = (self.g - 1) * self.period_ns if missed != self.missed \
+                        else None
                     log.warning("episode %d aborted at step %d: %s (%s)", i, s.steps, broken,
                                 self.commander.state)
             flown = flown or offboard
@@ -186,12 +191,19 @@ class SimNode(StepLoop):
         """Seeded episodes, after one aborted at commander time ``since`` because the
         vehicle left OFFBOARD or a lockstep command did not come: fly control steps
         outside any episode (failsafes, requests, status) until the vehicle is in
-        OFFBOARD with a setpoint newer than that, e.g. from a restarted policy node; the
-        next episode then starts placed as usual."""
-        log.info("waiting for OFFBOARD and a new setpoint before the next episode")
+        OFFBOARD asked for after that, e.g. by a restarted policy node once it is ready
+        to answer steps (a companion still starting may stream setpoints already), or,
+        still in OFFBOARD, until the missed step's command comes late (the policy is
+        alive, only slow); the next episode then starts placed as usual."""
+        log.info("waiting for OFFBOARD to be asked for again before the next episode")
         cmdr = self.commander
+
+        def late_answer() -> bool:
+            return self._late_stamp is not None and self._last_cmd is not None and \
+                m.nanoseconds(self._last_cmd.header.stamp) == self._late_stamp
+
         while not self.stopping.is_set() and not (
-                cmdr.state == State.OFFBOARD and cmdr.last_setpoint_time > since):
+                cmdr.state == State.OFFBOARD and (cmdr.offboard_asked > since or late_answer())):
             if self.tick(None):
                 self._place_on_ground(self.sim.vehicle.truth.position)
 

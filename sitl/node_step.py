@@ -90,6 +90,7 @@ class StepLoop:
         self._pending_goal: np.ndarray | None = None
         self._resume = State.HOLD  # the mode a placed episode continues in
         self._rejoin_after: float | None = None  # an episode broke then: wait for a rejoin
+        self._late_stamp: int | None = None  # the stamp of the step whose command missed
         self.results: list[dict] = []
         self.stopping = threading.Event()  # set: end the episode (aborted) and the run
         self.timing = {"publish_s": 0.0, "wait_s": 0.0, "step_s": 0.0}  # where wall time went
