@@ -18,6 +18,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -321,10 +322,12 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     from bus.session import SessionConfig
 
     rng = np.random.default_rng(7)
-    rounds = [(str(rng.choice(["policy", "perception", "bridge"])), float(rng.uniform(0, 1)))
+    # a kill lands a moment into the episode after an episode line (episodes of the
+    # scripted policy last 0.1-1 s in lockstep)
+    rounds = [(str(rng.choice(["policy", "perception", "bridge"])), float(rng.uniform(0, 0.3)))
               for _ in range(3)]
     out = tmp_path / "chaos"
-    args = up_args("--episodes", "16", "--policy", "scripted", "--restart", "on-failure",
+    args = up_args("--episodes", "20", "--policy", "scripted", "--restart", "on-failure",
                    "--log-dir", str(out), "--json", str(out / "summary.json"),
                    "--lockstep-timeout", "0.5", "--param", "COM_OF_LOSS_T=0.5",
                    "--param", "SKY_HOLD_LAND_T=0.3")  # hold, land: well before a new policy
@@ -344,15 +347,20 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
             # one since the last restart
             if flown[0] == 2 and len(seen) < len(rounds):
                 victim, delay = rounds[len(seen)]
-                time.sleep(delay)  # into the next episode
-                seen.append(len(texts))
-                os.kill(pids[victim], signal.SIGKILL)
+                seen.append(-1)  # filled in as the kill lands
+                # a timer, not a sleep here: the run's lines keep flowing meanwhile
+                threading.Timer(delay, kill, (len(seen) - 1, pids[victim])).start()
+
+    def kill(k: int, pid: int) -> None:
+        seen[k] = len(texts)
+        os.kill(pid, signal.SIGKILL)
 
     try:
         code, text = watch_up(args, on_line)
     finally:
         bus.close()
     assert code == 0, text
+    assert len(seen) == 3 and -1 not in seen, (seen, text)  # every kill landed in the run
     for k, (victim, _) in enumerate(rounds):
         assert f"node '{victim}' exited (code -9)" in text, (victim, text)
         after = texts[seen[k]:seen[k + 1] if k + 1 < len(seen) else None]
@@ -365,11 +373,11 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
         seq = [t for t in before if t in (hold, land, crash)]
         assert seq[:1] == [crash] or seq[:2] in ([hold, land], [hold, crash]), (victim, after)
     s = json.loads((out / "summary.json").read_text())
-    assert s["episodes"] == 16 and len(seen) == 3 and s["aborted"] >= 1, s
+    assert s["episodes"] == 20 and len(seen) == 3 and s["aborted"] >= 1, s
     assert sum(s["restarts"].values()) >= 3, s
     [mcap] = list(out.glob("*/*.mcap"))
     episodes, report = read_episodes(mcap)
-    assert report.clean and len(episodes) == 16 and all(e.complete for e in episodes)
+    assert report.clean and len(episodes) == 20 and all(e.complete for e in episodes)
 
 
 def test_a_restarted_router_lets_the_run_go_on(tmp_path):
