@@ -56,7 +56,7 @@ TOPICS: dict[str, Topic] = {
     t.name: t
     for t in (
         Topic(LIDAR_POINTS, "sensor_msgs/msg/PointCloud2",
-              "VLP-16 scan, x/y/z float32 in the sensor frame"),
+              "VLP-16 scan in the sensor frame: x/y/z, intensity float32, ring uint16"),
         Topic(ODOM, "nav_msgs/msg/Odometry",
               "estimated state (pose and velocity in world ENU)"),
         Topic(TRUTH, "nav_msgs/msg/Odometry",

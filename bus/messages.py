@@ -6,10 +6,15 @@ path of the stack. The constructors below build the messages the stack sends and
 extractors turn them back into numpy arrays, so no other package touches a message's
 field layout.
 
-Conventions: times are float seconds (sim time in lockstep) stored as
-``builtin_interfaces/Time``; frames are ENU (``frame_id='world'``). Odometry carries
-the velocity in the *world* frame (``frame_id``), not in ``child_frame_id`` as REP 105
-has it; the stack never reads it otherwise.
+Conventions: header stamps are the stack time (sim time: seconds of control steps
+since the sim started, so they begin at the epoch, 1970) stored as
+``builtin_interfaces/Time``; what a log does with them: docs/interfaces.md, "Logs in
+3D". Frames: ``world`` (ENU), ``base_link`` (body FLU), ``lidar`` (the VLP-16, at
+``base_link``); every message with a position or direction names one of them
+(EpisodeEvent and VehicleStatus ``world``, Observation ``base_link``), the rest ``''``
+(ActorWeights: no geometry). Odometry carries the velocity in the *world* frame
+(``frame_id``), not in ``child_frame_id`` as REP 105 has it; the stack never reads it
+otherwise.
 
 Measured (this machine, other core busy): encode of a 28,800-point cloud about
 0.03 ms, decode plus :func:`points_from_pointcloud` about 0.02 ms (zero copy).
@@ -148,31 +153,119 @@ def _quat(q: Sequence[float]) -> Any:
 
 
 # ----------------------------------------------------------------------------- clouds
-def pointcloud(points: np.ndarray, stamp_s: float, frame_id: str = "lidar") -> Any:
-    """(N, 3) points -> ``PointCloud2`` with x, y, z float32 fields, one row, dense
-    if every point is finite. The float32 buffer is used as it is (no per-point work)."""
+#: PointField datatypes by numpy kind (sensor_msgs/PointField constants).
+_FIELD_KINDS = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+_UINT16 = 4
+#: The intensity of every simulated return (see :func:`pointcloud`).
+LIDAR_INTENSITY = 100.0
+#: The VLP-16 layout of ``velodyne_pointcloud``'s ROS 2 PointcloudXYZIR: x, y, z,
+#: intensity float32 at 0, 4, 8, 12, ring uint16 at 16, ``point_step`` 18 (no padding,
+#: as ``PointCloud2Modifier.setPointCloud2Fields`` lays fields out).
+_XYZIR = np.dtype({"names": ["x", "y", "z", "intensity", "ring"],
+                   "formats": ["<f4", "<f4", "<f4", "<f4", "<u2"],
+                   "offsets": [0, 4, 8, 12, 16], "itemsize": 18})
+
+
+def pointcloud(points: np.ndarray, stamp_s: float, frame_id: str = "lidar", *,
+               rings: np.ndarray | None = None,
+               intensity: float | np.ndarray = LIDAR_INTENSITY) -> Any:
+    """(N, 3) points -> ``PointCloud2``, one row, dense if every point is finite.
+
+    Without ``rings``: x, y, z float32 (``point_step`` 12; the float32 buffer is used as
+    it is, no per-point work). With ``rings`` ((N,) laser index, 0 = lowest beam): the
+    layout a VLP-16 driver publishes (``velodyne_pointcloud`` XYZIR: x, y, z,
+    ``intensity`` float32, ``ring`` uint16, ``point_step`` 18). ``intensity``: the
+    simulator has no reflectivity model (one diffuse material everywhere), so every
+    return carries the same calibrated reflectivity, :data:`LIDAR_INTENSITY` (100 on the
+    VLP-16's scale: 0-100 diffuse, 101-255 retro-reflective); a scalar or (N,) array.
+    """
     pts = np.ascontiguousarray(points, dtype=np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {pts.shape}")
+    n = pts.shape[0]
+    dense = bool(np.isfinite(pts).all())
+    if rings is not None:
+        ring = np.asarray(rings).reshape(-1)
+        if ring.shape[0] != n:
+            raise ValueError(f"{ring.shape[0]} rings for {n} points")
+        rec = np.empty(n, dtype=_XYZIR)
+        rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+        rec["intensity"] = intensity
+        rec["ring"] = ring
+        fields = [PointField(name=name, offset=_XYZIR.fields[name][1],
+                             datatype=_UINT16 if name == "ring" else _FLOAT32, count=1)
+                  for name in _XYZIR.names]
+        return PointCloud2(
+            header=header(stamp_s, frame_id), height=1, width=n, fields=fields,
+            is_bigendian=False, point_step=_XYZIR.itemsize, row_step=_XYZIR.itemsize * n,
+            data=rec.view(np.uint8).reshape(-1), is_dense=dense)
     if not _LITTLE:  # the cloud says is_bigendian=False; keep the bytes little-endian
         pts = pts.astype("<f4")
-    n = pts.shape[0]
     fields = [PointField(name=c, offset=4 * i, datatype=_FLOAT32, count=1)
               for i, c in enumerate("xyz")]
     return PointCloud2(
         header=header(stamp_s, frame_id), height=1, width=n, fields=fields,
         is_bigendian=False, point_step=12, row_step=12 * n,
-        data=pts.reshape(-1).view(np.uint8), is_dense=bool(np.isfinite(pts).all()),
+        data=pts.reshape(-1).view(np.uint8), is_dense=dense,
     )
+
+
+def elevation_rings(points: np.ndarray, min_elevation_deg: float, max_elevation_deg: float,
+                    channels: int) -> np.ndarray:
+    """The laser ring (0 = lowest beam) of each sensor-frame return of a spinning LiDAR
+    whose ``channels`` beams are evenly spaced from ``min_elevation_deg`` to
+    ``max_elevation_deg`` (the VLP-16: 16 beams, -15 to +15 degrees, 2 apart).
+
+    A return lies on its beam (range noise moves it along the ray), so its elevation
+    is the beam's up to float32 rounding (~1e-7 rad against 2-degree spacing): the ring
+    is exact. (N,) uint16."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if channels <= 1 or len(p) == 0:
+        return np.zeros(len(p), dtype=np.uint16)
+    el = np.arctan2(p[:, 2], np.hypot(p[:, 0], p[:, 1]))
+    lo = math.radians(min_elevation_deg)
+    step = (math.radians(max_elevation_deg) - lo) / (channels - 1)
+    ring = np.rint((el - lo) / step)
+    return np.clip(np.nan_to_num(ring), 0, channels - 1).astype(np.uint16)
+
+
+def pointcloud_field(msg: Any, name: str) -> np.ndarray:
+    """One scalar field of every point of a ``PointCloud2`` (e.g. ``'ring'``,
+    ``'intensity'``) as a 1-D array of the field's type; ``ValueError`` if absent."""
+    by_name = {f.name: f for f in msg.fields}
+    f = by_name.get(name)
+    if f is None:
+        raise ValueError(f"PointCloud2 has no field {name!r} (has {sorted(by_name)})")
+    if f.datatype not in _FIELD_KINDS:
+        raise ValueError(f"field {name!r} has unknown datatype {f.datatype}")
+    rows = _cloud_rows(msg)
+    kind = np.dtype(_FIELD_KINDS[f.datatype]).newbyteorder(">" if msg.is_bigendian else "<")
+    dt = np.dtype({"names": [name], "formats": [kind], "offsets": [f.offset],
+                   "itemsize": msg.point_step})
+    return rows.view(dt).reshape(-1)[name].astype(kind.newbyteorder("="))
+
+
+def _cloud_rows(msg: Any) -> np.ndarray:
+    """The cloud's point bytes, row padding removed: (height * width * point_step,) uint8."""
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if msg.height * msg.width == 0:
+        return np.empty(0, dtype=np.uint8)
+    if msg.point_step < 1 or data.size < msg.height * msg.row_step \
+            or msg.row_step < msg.width * msg.point_step:
+        raise ValueError("PointCloud2 data shorter than height * row_step")
+    rows = data[: msg.height * msg.row_step].reshape(msg.height, msg.row_step)
+    return np.ascontiguousarray(rows[:, : msg.width * msg.point_step]).reshape(-1)
 
 
 def points_from_pointcloud(msg: Any) -> np.ndarray:
     """``PointCloud2`` -> (N, 3) float32 x, y, z.
 
-    Zero copy for the layout :func:`pointcloud` writes (x, y, z float32 at offsets 0, 4,
-    8, point_step 12, no row padding, host byte order): the result is then a view of the
-    message buffer, read-only if the payload was ``bytes``. Other layouts (extra fields,
-    padding, float64, big-endian) are converted with one vectorised copy.
+    Zero copy for the layout :func:`pointcloud` writes without rings (x, y, z float32 at
+    offsets 0, 4, 8, point_step 12, no row padding, host byte order): the result is then
+    a view of the message buffer, read-only if the payload was ``bytes``. x, y, z
+    float32 at 0, 4, 8 with a longer point (the VLP-16 layout with intensity and ring):
+    one strided copy. Other layouts (padding, float64, big-endian) are converted with
+    one vectorised copy.
     """
     by_name = {f.name: f for f in msg.fields}
     missing = [c for c in "xyz" if c not in by_name]
@@ -187,17 +280,21 @@ def points_from_pointcloud(msg: Any) -> np.ndarray:
             or msg.row_step < msg.width * msg.point_step:
         raise ValueError("PointCloud2 data shorter than height * row_step")
     same_order = bool(msg.is_bigendian) != _LITTLE
-    if (same_order and msg.point_step == 12 and msg.row_step == 12 * msg.width
-            and all(f.datatype == _FLOAT32 and f.offset == 4 * i for i, f in enumerate(xyz))):
-        return data[: 12 * n].view(np.float32).reshape(n, 3)
+    packed_xyz = all(f.datatype == _FLOAT32 and f.offset == 4 * i for i, f in enumerate(xyz))
+    if same_order and packed_xyz and msg.row_step == msg.point_step * msg.width:
+        if msg.point_step == 12:
+            return data[: 12 * n].view(np.float32).reshape(n, 3)
+        if msg.point_step >= 12:
+            view = np.ndarray((n, 3), dtype=np.float32, buffer=data[: msg.point_step * n],
+                              strides=(msg.point_step, 4))
+            return np.array(view, dtype=np.float32, order="C")
     kinds = {_FLOAT32: "f4", _FLOAT64: "f8"}
     if any(f.datatype not in kinds for f in xyz):
         raise ValueError("x, y, z must be FLOAT32 or FLOAT64")
     endian = ">" if msg.is_bigendian else "<"
     dt = np.dtype({"names": list("xyz"), "formats": [endian + kinds[f.datatype] for f in xyz],
                    "offsets": [f.offset for f in xyz], "itemsize": msg.point_step})
-    rows = data[: msg.height * msg.row_step].reshape(msg.height, msg.row_step)
-    rec = rows[:, : msg.width * msg.point_step].copy().view(dt).reshape(-1)
+    rec = _cloud_rows(msg).view(dt).reshape(-1)
     out = np.empty((n, 3), dtype=np.float32)
     for i, c in enumerate("xyz"):
         out[:, i] = rec[c]
@@ -278,7 +375,7 @@ SCALING_FIELDS = ("radius", "altitude_scale", "angle_scale", "centre_angles", "e
 
 
 def observation(values: np.ndarray, stamp_s: float, episode: int = 0, step: int = 0,
-                frame_id: str = "", scaling: Mapping[str, Any] | None = None) -> Any:
+                frame_id: str = "base_link", scaling: Mapping[str, Any] | None = None) -> Any:
     """``skyloop_msgs/Observation`` from a (attributes,) or (frames, attributes) array;
     ``scaling`` (the :data:`SCALING_FIELDS` of the ``ObservationConfig`` that made the
     values) is recorded with them; without it the message says "not recorded"."""
@@ -317,7 +414,7 @@ def observation_values(msg: Any) -> np.ndarray:
 def episode_start(episode: int, seed: int, start: Sequence[float], goal: Sequence[float],
                   stamp_s: float, scenario: str = "") -> Any:
     """``EpisodeEvent`` START with the seed, start and goal positions (world ENU)."""
-    return EpisodeEvent(header=header(stamp_s), event=START, episode=int(episode),
+    return EpisodeEvent(header=header(stamp_s, "world"), event=START, episode=int(episode),
                         seed=int(seed), scenario=scenario, start=_vec3(start, Point),
                         goal=_vec3(goal, Point), outcome=OUTCOMES["none"], steps=0)
 
@@ -328,7 +425,7 @@ def episode_end(episode: int, outcome: str, steps: int, stamp_s: float,
     if outcome not in OUTCOMES or outcome == "none":
         raise ValueError(f"outcome must be one of {sorted(set(OUTCOMES) - {'none'})}")
     zero = Point(x=0.0, y=0.0, z=0.0)
-    return EpisodeEvent(header=header(stamp_s), event=END, episode=int(episode),
+    return EpisodeEvent(header=header(stamp_s, "world"), event=END, episode=int(episode),
                         seed=int(seed), scenario=scenario, start=zero, goal=zero,
                         outcome=OUTCOMES[outcome], steps=int(steps))
 
@@ -372,7 +469,7 @@ def vehicle_status(stamp_s: float, vehicle_time: float, revision: int, state: st
                    events: Sequence[tuple[str, str, str]] = ()) -> Any:
     """``skyloop_msgs/VehicleStatus``; ``events``: (text, kind, severity name) each."""
     return VehicleStatus(
-        header=header(stamp_s), vehicle_time=float(vehicle_time), revision=int(revision),
+        header=header(stamp_s, "world"), vehicle_time=float(vehicle_time), revision=int(revision),
         state=str(state), armed=bool(armed), landed=bool(landed),
         failsafe=failsafe_reason is not None, failsafe_reason=failsafe_reason or "",
         crashed=bool(crashed), home=np.array(home, dtype=np.float64).reshape(3),

@@ -133,7 +133,9 @@ class StepLoop:
                                            stamp))
         self.pub[keys.TRUTH].put(m.odometry(truth.position, truth.velocity,
                                             quat_from_matrix(truth.rotation), stamp))
-        cloud = m.pointcloud(s.scan(), stamp)
+        points, lidar = s.scan(), s.lidar.config  # VLP-16 layout: x, y, z, intensity, ring
+        cloud = m.pointcloud(points, stamp, rings=m.elevation_rings(
+            points, lidar.min_elevation_deg, lidar.max_elevation_deg, lidar.channels))
         t_pub = time.monotonic()
         self.pub[keys.LIDAR_POINTS].put(cloud)
         return t_pub
