@@ -32,8 +32,10 @@ from perception.icosahedron import TruncatedIcosahedron
 from perception.observation import FrameStacker, ObservationConfig, observation_from_scan
 from policy.rewards import RewardConfig, base_reward, collision_reward
 from sitl.episode import EpisodeConfig, EpisodeSim, body_to_world
+from sitl.render_fast import FastRenderer
 
 OBS_DIM, FRAMES, MAX_ACTION = TASK.obs_dim, TASK.frames, TASK.max_action  # bus.task
+RENDER_BACKENDS = ("fast", "matplotlib")  # render_mode="rgb_array": sitl.render_fast, sitl.render
 
 
 @dataclass
@@ -69,6 +71,7 @@ class UavNavEnv(gymnasium.Env):
         config: EnvConfig | None = None,
         reward_config: RewardConfig | None = None,
         observation_config: ObservationConfig | None = None,
+        render_backend: str = "fast",
     ) -> None:
         self.config = config or EnvConfig(
             episode=EpisodeConfig(scenario=scenario, lidar_max_range=lidar_max_range))
@@ -77,6 +80,11 @@ class UavNavEnv(gymnasium.Env):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', not {render_mode!r}")
         self.render_mode = render_mode
+        if render_backend not in RENDER_BACKENDS:
+            raise ValueError(f"render_backend must be one of {RENDER_BACKENDS}, "
+                             f"not {render_backend!r}")
+        self.render_backend = render_backend
+        self._renderer: FastRenderer | None = None  # built on the first frame of a world
         self.sim = EpisodeSim(self.config.episode)
         self.world, self.vehicle, self.lidar = self.sim.world, self.sim.vehicle, self.sim.lidar
         self.ico = TruncatedIcosahedron(self.obs_config.radius)
@@ -137,11 +145,40 @@ class UavNavEnv(gymnasium.Env):
         return self.stacker.push(obs), float(reward), terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
+        """The current frame as RGB uint8 with ``render_mode="rgb_array"`` (else None).
+
+        ``render_backend="fast"`` (default): 640x480 from :mod:`sitl.render_fast`, a
+        top-down map (terrain, obstacles, aircraft, goal, trail, LiDAR returns, the
+        vehicle and its icosahedron ring) and a panel (face charts, altitude and
+        distance-to-goal charts, status); the map is precomputed on the first frame of a
+        world (~0.1 s), then a frame takes milliseconds, so ``RecordVideo`` is
+        practical. ``"matplotlib"``: the 960x480 picture of :mod:`sitl.render` (top and
+        3D views), about a second a frame.
+        """
         if self.render_mode != "rgb_array":
             return None
+        truth = self.vehicle.truth
+        if self.render_backend == "fast":
+            world = self.sim.world
+            if self._renderer is None or not self._renderer.matches(world):
+                self._renderer = FastRenderer(
+                    world, face_normals=self.ico.normals, ico_radius=self.ico.radius,
+                    face_scale=(1.0 if self.obs_config.encoding == "proximity"
+                                else self.ico.radius),
+                    max_steps=self.task.max_steps, goal_radius=self.task.goal_radius,
+                    goal_max_altitude=self.task.goal_max_altitude,
+                    lidar_range=self.config.episode.lidar_max_range)
+            outcome = None
+            if self.steps:
+                outcome = self.task.outcome(self.sim.collided, self._distance,
+                                            float(truth.position[2]), self.steps)
+            return self._renderer.frame(
+                position=truth.position, rotation=truth.rotation, path=np.array(self.path),
+                start=self.start, goal=self.goal, points=self._points,
+                face_values=self._faces, velocity=truth.velocity, t=self.sim.time,
+                step=self.steps, outcome=outcome)
         from sitl.render import render_scene
 
-        truth = self.vehicle.truth
         return render_scene(
             self.world,
             start=self.start,
