@@ -3,6 +3,18 @@
 Importing this package registers the Gymnasium environment ``skyloop/UavNav-v0``
 (the in-process env of :mod:`policy.env`), so ``gymnasium.make("skyloop/UavNav-v0")``
 works after ``import skyloop``.
+
+Where nothing imported skyloop (a fresh interpreter, the worker processes of
+Stable-Baselines3's ``SubprocVecEnv``, which start from a forkserver or ``spawn``), use
+the module-qualified id ``"skyloop:skyloop/UavNav-v0"``: Gymnasium imports the module
+before ``:`` and then finds the id. Gymnasium 1.0 removed the ``gymnasium.envs``
+entry-point plugins that once registered installed packages' envs on their own, so an
+entry point in pyproject.toml would not do this.
+
+The spec's ``max_episode_steps`` is the task specification's episode limit
+(``bus.task.TASK.max_steps``), so ``TimeLimit`` and the env's own timeout agree; a run
+that raises the env's limit (``config=EnvConfig(max_steps=...)``) passes the same
+``max_episode_steps=`` to ``gymnasium.make``.
 """
 
 from __future__ import annotations
@@ -16,6 +28,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import gymnasium  # noqa: E402
 
+from bus.task import TASK  # noqa: E402
+
 try:  # the one version is pyproject.toml's, as installed
     __version__ = version("skyloop")
 except PackageNotFoundError:  # running from a tree that was never installed
@@ -23,5 +37,6 @@ except PackageNotFoundError:  # running from a tree that was never installed
 
 ENV_ID = "skyloop/UavNav-v0"
 
-if ENV_ID not in gymnasium.registry:
-    gymnasium.register(id=ENV_ID, entry_point="policy.env:UavNavEnv")
+if ENV_ID not in gymnasium.registry:  # once, however skyloop came to be imported
+    gymnasium.register(id=ENV_ID, entry_point="policy.env:UavNavEnv",
+                       max_episode_steps=TASK.max_steps)
