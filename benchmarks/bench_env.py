@@ -4,6 +4,12 @@
 estimator, collision check, VLP-16 scan truncated at 4.5 m, icosahedron, reward) under
 the scripted controller, median of several repeats. The peer runs in ``.venv-peers``
 (see ``peer_pyflyt.py``); when that venv is missing the peer is reported as skipped.
+
+``render_fps`` is ``env.render()`` alone (``render_mode="rgb_array"``, the fast 640x480
+renderer of ``sitl.render_fast``) on frames of a scripted episode, after the first
+frame and a few warm-up frames, median of several repeats; ``render_first_frame_ms`` is
+the first frame of a fresh env (the per-world map precompute and one frame), median of
+a few fresh envs.
 """
 
 from __future__ import annotations
@@ -35,6 +41,34 @@ def measure_env(steps: int, repeats: int, scenario: str = "valley") -> float:
     return statistics.median(rates)
 
 
+def measure_render(frames: int, repeats: int, scenario: str = "valley") -> dict:
+    controller = StraightLineController()
+    first = []
+    for k in range(max(repeats // 2, 2)):
+        env = UavNavEnv(scenario=scenario, render_mode="rgb_array")
+        env.reset(seed=k)
+        t0 = time.perf_counter()
+        env.render()
+        first.append(time.perf_counter() - t0)
+    state, _ = env.reset(seed=0)
+    for _ in range(5):  # warm-up frames
+        env.render()
+    rates = []
+    for _ in range(repeats):
+        spent = 0.0
+        for _ in range(frames):
+            state, _, term, trunc, _ = env.step(controller(state))
+            if term or trunc:
+                state, _ = env.reset()
+            t0 = time.perf_counter()
+            frame = env.render()
+            spent += time.perf_counter() - t0
+        rates.append(frames / spent)
+    assert frame.shape == (480, 640, 3)
+    return {"render_fps": statistics.median(rates),
+            "render_first_frame_ms": 1e3 * statistics.median(first)}
+
+
 def measure_pyflyt(steps: int, repeats: int) -> dict:
     if not PEER_PYTHON.exists():
         return {"pyflyt_quadx_waypoints_steps_per_s": None,
@@ -51,5 +85,6 @@ def measure_pyflyt(steps: int, repeats: int) -> dict:
 def run(quick: bool) -> dict:
     steps, repeats = (300, 3) if quick else (1500, 5)
     result = {"env_steps_per_s": measure_env(steps, repeats)}
+    result.update(measure_render(100 if quick else 300, repeats))
     result["peers"] = measure_pyflyt(steps, repeats)
     return result
