@@ -27,7 +27,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 #: the nodes of a stack (and the router), one certificate each
-NODES = ("router", "sim", "perception", "policy", "bridge", "record", "learner", "launcher")
+NODES = ("router", "sim", "perception", "policy", "bridge", "record", "viz", "learner",
+         "launcher")
 #: only this node may put the vehicle's inputs and ask its commander
 COMMANDER = "bridge"
 #: what the access control reserves to :data:`COMMANDER`

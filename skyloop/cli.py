@@ -229,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
     from skyloop.learner_cli import add_learner_parser
 
     add_learner_parser(sub)
+    from skyloop.viewer import add_viewer_commands
+
+    add_viewer_commands(sub)
     return parser
 
 

@@ -55,6 +55,7 @@ from bus.session import SessionConfig
 from bus.task import TASK
 from skyloop.argtypes import nonnegative_int, positive_float, positive_int
 from skyloop.signals import Stopped, stop_on_sigterm
+from skyloop.viewer import viz_target
 
 # The lines the nodes print (sitl.node / policy.node; not imported: --help stays light);
 # the READY lines are for people reading the output: readiness comes over the bus.
@@ -110,7 +111,7 @@ class Graph:
         self.episodes: list[dict] = []
         self.summary: dict | None = None
         self.log_path: str | None = None
-        self.ready = {name: threading.Event() for name in ("policy", "record", "sim")}
+        self.ready = {name: threading.Event() for name in ("policy", "record", "sim", "viz")}
         self.restarts: collections.Counter[str] = collections.Counter()
         self.zenoh_configs: Path | None = None  # ``skyloop certs`` output: <node>.json5
         self._lock = threading.Lock()
@@ -158,6 +159,8 @@ class Graph:
                 self.summary = json.loads(line[len(SUMMARY_LINE):])
             elif child.name == "record" and line.startswith("recorded "):
                 self.log_path = line.rsplit(" into ", 1)[-1].split(";")[0]
+            elif child.name == "viz" and line.startswith("viz: drawing"):
+                print(line, flush=True)  # where to look (the web viewer's address)
 
     def on_ready(self, node: str, alive: bool) -> None:
         """A node's readiness token appeared (or went): the bus, not its stdout, says
@@ -182,9 +185,10 @@ class Graph:
                 raise TimeoutError(f"{what} not ready within {timeout:.0f} s")
         return None
 
-    def stop(self, grace: float = GRACE_S) -> None:
-        """SIGTERM every live child, SIGKILL what is left after ``grace`` seconds."""
-        self._stop(self.children, grace)
+    def stop(self, grace: float = GRACE_S, keep: str | None = None) -> None:
+        """SIGTERM every live child (but ``keep``), SIGKILL what is left after ``grace``
+        seconds."""
+        self._stop([c for c in self.children if c.name != keep], grace)
 
     @staticmethod
     def _stop(children: list[Child], grace: float) -> None:
@@ -228,6 +232,8 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
         "policy": ["policy", *v, *clock, "--api-port", str(ports["api"]), *security,
                    *(["--hold"] if args.goals == "gcs" else []),
                    *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
+        "viz": ["viz", *v, "--viz", args.viz or "spawn", "--scan-every",
+                str(args.viz_scan_every)],
         "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
                 str(args.episodes), "--seed", str(args.seed), "--max-steps", str(args.max_steps),
                 "--lockstep-timeout", str(args.lockstep_timeout),
@@ -288,6 +294,8 @@ def run_up(args: argparse.Namespace) -> int:
             graph.start("record", ["record", "--out", str(args.log_dir), "--vehicle",
                                    args.vehicle, "--split-episodes",
                                    str(args.log_split_episodes)])
+        if args.viz:
+            graph.start("viz", nodes["viz"])
         for name in ("perception", "bridge"):
             graph.start(name, nodes[name])
         if args.policy != "none":
@@ -300,6 +308,7 @@ def run_up(args: argparse.Namespace) -> int:
             graph.zenoh_configs / "launcher.json5")) if secure else SessionConfig.from_env(env))
         bus.watch_ready(args.vehicle, graph.on_ready)  # this stack's vehicle only
         waits = [("sim", 120.0)] + ([("record", 60.0)] if args.log_dir else []) + \
+            ([("viz", 60.0)] if args.viz else []) + \
             ([("policy", 120.0)] if args.policy != "none" else [])
         for name, timeout in waits:
             if (c := graph.wait_for(graph.ready[name], name, timeout)) is not None:
@@ -322,7 +331,7 @@ def run_up(args: argparse.Namespace) -> int:
             time.sleep(0.05)
         if sim.proc.returncode != 0 or graph.summary is None:
             return _died(graph, sim)
-        graph.stop()
+        graph.stop(keep="viz" if args.viz == "web" else None)
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
         print(f"{signal.Signals(signum).name}: stopping every node", file=sys.stderr,
@@ -348,12 +357,21 @@ def run_up(args: argparse.Namespace) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2))
+    if args.viz == "web":  # the run is over; its view stays until Ctrl-C or SIGTERM
+        print("the web viewer keeps the run (address above): Ctrl-C to stop", flush=True)
+        try:
+            while graph.dead() is None:
+                time.sleep(0.2)
+        except KeyboardInterrupt:
+            pass
+        graph.stop()
     return 0
 
 
 def nodes_of(args: argparse.Namespace) -> list[str]:
     """The nodes ``skyloop up`` starts for these flags (the router aside)."""
-    return [*(["record"] if args.log_dir else []), "perception", "bridge",
+    return [*(["record"] if args.log_dir else []), *(["viz"] if args.viz else []),
+            "perception", "bridge",
             *(["policy"] if args.policy != "none" else []), "sim"]
 
 
@@ -461,6 +479,13 @@ def add_up_parser(sub: Any, func: Any) -> None:
                         "with a failure again, the run goes on (default: no, the run stops)")
     p.add_argument("--max-restarts", type=positive_int, default=3, metavar="N",
                    help="restarts per node with --restart on-failure (default: 3)")
+    p.add_argument("--viz", nargs="?", const="spawn", default=None, type=viz_target,
+                   metavar="TARGET",
+                   help="watch the run in 3D (Rerun): spawn (the native viewer, the default "
+                        "of a bare --viz), web (a web viewer on localhost, for a headless "
+                        "machine; it stays up after the run until Ctrl-C) or save:PATH.rrd")
+    p.add_argument("--viz-scan-every", type=positive_int, default=5, metavar="N",
+                   help="with --viz: draw the LiDAR scan every N steps (default: 5)")
     p.add_argument("-v", "--verbose", action="store_true", help="echo every node's output")
     add_security_args(p)  # --expose: the bridge binds 0.0.0.0 (ground stations elsewhere)
     p.set_defaults(func=func)

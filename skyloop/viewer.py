@@ -1,0 +1,610 @@
+"""See a run in 3D with Rerun: live (``skyloop up --viz``, ``skyloop viz``) or from a log
+(``skyloop view LOG``).
+
+One :class:`RunView` turns the bus's messages into Rerun entities, whatever feeds them:
+
+- ``world/terrain``, ``world/obstacles`` (static meshes, rebuilt from the scenario that the
+  episode START names: worlds are deterministic from it), ``world/aircraft`` (boxes at
+  the step's sim time), ``world/goal`` and ``world/start``;
+- ``world/vehicle`` (its pose from ``truth``, else ``odom``) holding ``body``, ``lidar``
+  (the scan in the sensor frame, coloured by range) and ``faces`` (the truncated
+  icosahedron of the observation, each face coloured by its value);
+  ``world/trail`` (the episode's path), ``world/cmd`` (the commanded velocity, world
+  frame, drawn from the vehicle);
+- ``plots/altitude``, ``plots/speed``, ``plots/distance_to_goal``, ``plots/reward`` (the
+  eq. 3.5 base reward of each step, from the observation's h, g, the altitude and the
+  progress to the goal; the collision reward on a collision), ``events`` (episode
+  starts and ends, the vehicle's status texts).
+
+Timelines: ``step`` (control steps over the run, from the step clock) and ``sim_time``
+(the messages' header stamps: the stack time, monotonic over the run).
+
+Targets (``--viz``): ``spawn`` (the native viewer; needs a display), ``web`` (the web
+viewer served on localhost: open the printed address; for a headless machine), and
+``save:PATH.rrd`` (a recording for ``rerun PATH.rrd`` later). A scan is drawn every
+``scan_every`` steps (default 5): a VLP-16 scan is ~20k points, every one of them would
+make a recording of a few episodes hundreds of MB; the live node also keeps only the
+newest scan when the viewer falls behind (counted).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import threading
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("skyloop.viz")
+
+TARGETS = "spawn, web or save:PATH.rrd"
+#: the topics a view draws (bus.keys names)
+VIEW_TOPICS = ("clock", "truth", "odom", "lidar/points", "observation", "cmd_vel",
+               "episode", "status")
+
+
+@dataclass(frozen=True)
+class Target:
+    """Where the view goes: ``kind`` is spawn, web or save (with ``path``)."""
+
+    kind: str
+    path: Path | None = None
+
+
+def parse_target(text: str, flag: str = "--viz") -> Target:
+    """``spawn`` | ``web`` | ``save:PATH.rrd`` -> :class:`Target`; ValueError naming
+    ``flag`` otherwise."""
+    if text in ("spawn", "web"):
+        return Target(text)
+    if text.startswith("save:") and text[5:]:
+        path = Path(text[5:])
+        if path.suffix != ".rrd":
+            raise ValueError(f"{flag} {text}: the recording must be a .rrd file")
+        return Target("save", path)
+    raise ValueError(f"{flag} {text!r}: must be {TARGETS}")
+
+
+def open_recording(target: Target, *, web_port: int = 9090, grpc_port: int = 9876,
+                   recording_name: str = "skyloop") -> tuple[Any, str | None]:
+    """A Rerun recording stream sending to ``target``; for ``web`` also the address to
+    open (the gRPC server buffers what is logged before a browser connects)."""
+    import os
+
+    import rerun as rr
+
+    if target.kind == "spawn" and not (os.environ.get("DISPLAY")
+                                       or os.environ.get("WAYLAND_DISPLAY")):
+        raise ValueError("--viz spawn: no display here (DISPLAY unset); use --viz web or "
+                         "--viz save:PATH.rrd")
+    rec = rr.RecordingStream("skyloop")
+    rec.send_recording_name(recording_name)
+    if target.kind == "save":
+        assert target.path is not None
+        target.path.parent.mkdir(parents=True, exist_ok=True)
+        rec.save(str(target.path))
+        return rec, None
+    if target.kind == "spawn":
+        rec.spawn()
+        return rec, None
+    uri = rec.serve_grpc(grpc_port=grpc_port)
+    rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=uri)
+    from urllib.parse import quote
+
+    return rec, f"http://127.0.0.1:{web_port}/?url={quote(uri, safe='')}"
+
+
+def blueprint(extent: tuple[float, float, float, float] | None = None) -> Any:
+    """The layout: the 3D world large on the left (seen from the south-west, above the
+    terrain of ``extent`` = xmin, xmax, ymin, ymax), the time series and the events on
+    the right."""
+    import rerun.blueprint as rrb
+
+    eye = None
+    if extent is not None:
+        x0, x1, y0, y1 = extent
+        cx, cy, size = (x0 + x1) / 2, (y0 + y1) / 2, max(x1 - x0, y1 - y0)
+        eye = rrb.EyeControls3D(position=[cx - 0.55 * size, cy - 0.75 * size, 0.6 * size],
+                                look_target=[cx, cy, 0.0], eye_up=[0, 0, 1])
+    plots = [rrb.TimeSeriesView(origin=f"/plots/{n}", name=n.replace("_", " "))
+             for n in ("altitude", "speed", "distance_to_goal", "reward")]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="/world", name="world", eye_controls=eye),
+            rrb.Vertical(*plots, rrb.TextLogView(origin="/events", name="events")),
+            column_shares=[3, 1]),
+        rrb.TimePanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+        rrb.BlueprintPanel(state="collapsed"), collapse_panels=True)
+
+
+# ------------------------------------------------------------------ pure helpers
+def height_colors(z: np.ndarray) -> np.ndarray:
+    """(V,) heights -> (V, 3) uint8 colours: low green, mid ochre, high grey-white."""
+    lo, hi = float(np.min(z)), float(np.max(z))
+    t = (z - lo) / max(hi - lo, 1e-6)
+    stops = np.array([[62, 120, 60], [150, 140, 80], [120, 100, 80], [235, 235, 230]], float)
+    pos = np.linspace(0.0, 1.0, len(stops))
+    return np.stack([np.interp(t, pos, stops[:, c]) for c in range(3)], 1).astype(np.uint8)
+
+
+def range_colors(points: np.ndarray, max_range: float = 30.0) -> np.ndarray:
+    """(N, 3) points in the sensor frame -> (N, 3) uint8: near red, far blue (by range)."""
+    t = np.clip(np.linalg.norm(points, axis=1) / max_range, 0.0, 1.0)
+    return np.stack([255 * (1 - t), 80 + 100 * np.sin(np.pi * t), 255 * t], 1).astype(np.uint8)
+
+
+def face_colors(values: np.ndarray) -> np.ndarray:
+    """(32,) face values (0 = nothing in the face) -> (32, 4) RGBA: free faces faint
+    green, occupied faces red, the more opaque the larger the value."""
+    v = np.clip(np.asarray(values, float), 0.0, 1.0)
+    free = v <= 0.0
+    rgba = np.empty((len(v), 4), np.uint8)
+    rgba[free] = (90, 200, 120, 40)
+    rgba[~free, :3] = (230, 60, 40)
+    rgba[~free, 3] = (120 + 135 * v[~free]).astype(np.uint8)
+    return rgba
+
+
+def face_mesh(vertices: np.ndarray, faces: list[list[int]]) -> tuple[np.ndarray, np.ndarray,
+                                                                       np.ndarray]:
+    """The truncated icosahedron as triangles with unshared vertices (so each face can
+    have its own colour): vertices (3T, 3), triangles (T, 3), and each triangle's face."""
+    tris, owner = [], []
+    for i, f in enumerate(faces):
+        for k in range(1, len(f) - 1):  # a fan over the convex face
+            tris.append((f[0], f[k], f[k + 1]))
+            owner.append(i)
+    corner = np.asarray(tris).reshape(-1)
+    return (vertices[corner].astype(np.float32), np.arange(len(corner)).reshape(-1, 3),
+            np.asarray(owner))
+
+
+def yaw_rotate(v: np.ndarray, yaw: float) -> np.ndarray:
+    """A body-horizontal (FLU at the heading) vector in world ENU: rotate x, y by yaw."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+
+
+# ------------------------------------------------------------------ the view
+@dataclass
+class _Episode:
+    goal: np.ndarray | None = None
+    trail: list[np.ndarray] = field(default_factory=list)
+    distance: float | None = None
+
+
+class RunView:
+    """Messages of one vehicle -> Rerun entities (see the module docstring).
+    ``handle(name, msg)`` takes a decoded message of bus topic ``name``."""
+
+    def __init__(self, rec: Any, *, scan_every: int = 5) -> None:
+        import rerun as rr
+
+        from perception.icosahedron import TruncatedIcosahedron
+        from policy.rewards import RewardConfig
+
+        self.rr, self.rec, self.scan_every = rr, rec, max(1, int(scan_every))
+        self.step = 0
+        self.sim_time = 0.0
+        self.scenario: str | None = None
+        self.world: Any = None
+        self.ep = _Episode()
+        self.pose: tuple[np.ndarray, np.ndarray] | None = None  # position, quaternion xyzw
+        self.reward_config = RewardConfig()
+        self.ico_radius: float | None = None
+        self._ico = TruncatedIcosahedron
+        self.counts = {"scans_drawn": 0, "messages": 0}
+        rec.send_blueprint(blueprint())
+        self._draw_vehicle()
+
+    # -- time
+    def _time(self, stamp: Any | None = None) -> None:
+        if stamp is not None:
+            self.sim_time = stamp.sec + stamp.nanosec * 1e-9
+        self.rec.set_time("step", sequence=self.step)
+        self.rec.set_time("sim_time", duration=self.sim_time)
+
+    def handle(self, name: str, msg: Any) -> None:
+        """Draw one message (unknown topics are ignored)."""
+        self.counts["messages"] += 1
+        if name == "clock":
+            self.step += 1
+            self.sim_time = msg.sim_time.sec + msg.sim_time.nanosec * 1e-9
+            self._time()
+        elif name == "episode":
+            self._episode(msg)
+        elif name == "truth" or (name == "odom" and self.pose is None):
+            self._pose(msg)
+        elif name == "lidar/points":
+            self._scan(msg)
+        elif name == "observation":
+            self._observation(msg)
+        elif name == "cmd_vel":
+            self._command(msg)
+        elif name == "status":
+            for text in msg.event_texts:
+                self._time(msg.header.stamp)
+                self.rec.log("events", self.rr.TextLog(str(text), level="INFO"))
+
+    # -- the world
+    def _world(self, scenario: str) -> None:
+        from sitl.world import World, load_scenario
+
+        rr = self.rr
+        self.world = World(load_scenario(scenario))
+        self.scenario = scenario
+        self.rec.send_blueprint(blueprint(self.world.extent))
+        verts, tris = self.world.terrain.mesh()
+        self.rec.log("world/terrain", rr.Mesh3D(vertex_positions=verts, triangle_indices=tris,
+                                                vertex_colors=height_colors(verts[:, 2])),
+                     static=True)
+        parts = [(s.vertices, s.triangles, s.kind) for s in self.world.solids]
+        if parts:
+            colour = {"building": (150, 150, 160), "trunk": (110, 80, 50),
+                      "crown": (40, 120, 50)}
+            offset, vs, ts, cs = 0, [], [], []
+            for v, t, kind in parts:
+                vs.append(v)
+                ts.append(t + offset)
+                cs.append(np.tile(colour.get(kind, (160, 160, 160)), (len(v), 1)))
+                offset += len(v)
+            self.rec.log("world/obstacles", rr.Mesh3D(
+                vertex_positions=np.vstack(vs).astype(np.float32),
+                triangle_indices=np.vstack(ts), vertex_colors=np.vstack(cs).astype(np.uint8)),
+                static=True)
+        else:
+            self.rec.log("world/obstacles", rr.Clear(recursive=False), static=True)
+
+    def _draw_vehicle(self) -> None:
+        rr = self.rr
+        self.rec.log("world/vehicle/body", rr.Boxes3D(half_sizes=[[0.23, 0.23, 0.06]],
+                                                      colors=[[40, 90, 230]],
+                                                      fill_mode="solid"), static=True)
+
+    def _episode(self, msg: Any) -> None:
+        rr = self.rr
+        self._time(msg.header.stamp)
+        if msg.event == 0:  # START
+            if msg.scenario and msg.scenario != self.scenario:
+                self._world(msg.scenario)
+            start = np.array([msg.start.x, msg.start.y, msg.start.z])
+            goal = np.array([msg.goal.x, msg.goal.y, msg.goal.z])
+            self.ep = _Episode(goal=goal, trail=[start])
+            self.rec.log("world/goal", rr.Points3D([goal], radii=[0.6], colors=[[250, 200, 0]],
+                                                  labels=["goal"]))
+            self.rec.log("world/start", rr.Points3D([start], radii=[0.3],
+                                                   colors=[[240, 240, 240]]))
+            self.rec.log("events", rr.TextLog(
+                f"episode {msg.episode} (seed {msg.seed}, {msg.scenario}) starts", level="INFO"))
+        else:
+            outcome = {1: "success", 2: "collision", 3: "timeout", 4: "aborted"}.get(
+                msg.outcome, "?")
+            if msg.outcome == 2:
+                from policy.rewards import collision_reward
+
+                self.rec.log("plots/reward", rr.Scalars(collision_reward(self.reward_config)[0]))
+            self.rec.log("events", rr.TextLog(
+                f"episode {msg.episode}: {outcome} in {msg.steps} steps",
+                level="WARN" if msg.outcome in (2, 4) else "INFO"))
+
+    # -- the vehicle
+    def _pose(self, msg: Any) -> None:
+        from bus.messages import odometry_values
+
+        rr = self.rr
+        self._time(msg.header.stamp)
+        p, v, q = odometry_values(msg)
+        self.pose = (p, q)
+        self.rec.log("world/vehicle", rr.Transform3D(translation=p, quaternion=rr.Quaternion(
+            xyzw=q)))
+        trail = self.ep.trail
+        if not trail or np.linalg.norm(trail[-1] - p) > 0.05:
+            trail.append(p)
+            self.rec.log("world/trail", rr.LineStrips3D([np.asarray(trail)],
+                                                         colors=[[40, 90, 230]], radii=[0.05]))
+        self.rec.log("plots/altitude", rr.Scalars(float(p[2])))
+        self.rec.log("plots/speed", rr.Scalars(float(np.linalg.norm(v))))
+        if self.ep.goal is not None:
+            d = float(np.linalg.norm(self.ep.goal - p))
+            self.rec.log("plots/distance_to_goal", rr.Scalars(d))
+        if self.world is not None and len(self.world.fleet):
+            b = self.world.aircraft_boxes(self.sim_time)
+            yaw = np.arctan2(b[:, 7], b[:, 6])
+            self.rec.log("world/aircraft", rr.Boxes3D(
+                centers=b[:, :3], half_sizes=b[:, 3:6], fill_mode="solid",
+                colors=[[200, 60, 200]],
+                rotation_axis_angles=[rr.RotationAxisAngle(axis=[0, 0, 1], radians=float(a))
+                                      for a in yaw]))
+
+    def _scan(self, msg: Any) -> None:
+        if self.step % self.scan_every:
+            return
+        from bus.messages import points_from_pointcloud
+
+        self._time(msg.header.stamp)
+        pts = points_from_pointcloud(msg)
+        pts = pts[np.isfinite(pts).all(axis=1)]
+        self.rec.log("world/vehicle/lidar", self.rr.Points3D(pts, colors=range_colors(pts),
+                                                             radii=[0.03]))
+        self.counts["scans_drawn"] += 1
+
+    def _observation(self, msg: Any) -> None:
+        from bus.messages import observation_scaling
+        from perception.observation import config_from_scaling, goal_terms
+        from policy.rewards import base_reward
+
+        rr = self.rr
+        self._time(msg.header.stamp)
+        values = np.asarray(msg.values, np.float32).reshape(msg.frames, msg.attributes)[-1]
+        scaling = observation_scaling(msg)
+        config = config_from_scaling(scaling) if scaling else None
+        radius = config.radius if config else 4.0
+        if radius != self.ico_radius:  # the solid around the vehicle, at its radius
+            self.ico_radius = radius
+            ico = self._ico(radius)
+            self._face_verts, self._face_tris, self._face_owner = face_mesh(ico.vertices,
+                                                                            ico.faces)
+            self.rec.log("world/vehicle/solid", rr.LineStrips3D(
+                ico.vertices[ico.edges], colors=[[90, 200, 120]], radii=[0.01]))
+        # the faces with something in them, filled; the free ones are the wireframe
+        hit = np.flatnonzero(values[:32][self._face_owner] > 0.0)
+        if len(hit):
+            corners = self._face_tris[hit].reshape(-1)
+            colours = face_colors(values[:32])[self._face_owner[hit]]
+            self.rec.log("world/vehicle/faces", rr.Mesh3D(
+                vertex_positions=self._face_verts[corners],
+                triangle_indices=np.arange(len(corners)).reshape(-1, 3),
+                vertex_colors=np.repeat(colours[:, :3], 3, axis=0)))
+        else:
+            self.rec.log("world/vehicle/faces", rr.Clear(recursive=False))
+        if config is None or self.pose is None or self.ep.goal is None:
+            return
+        z, h, g = goal_terms(values, config)
+        d = float(np.linalg.norm(self.ep.goal - self.pose[0]))
+        if self.ep.distance is not None:
+            r, _ = base_reward(self.ep.distance, d, z, h, g, self.reward_config)
+            self.rec.log("plots/reward", rr.Scalars(r))
+        self.ep.distance = d
+
+    def _command(self, msg: Any) -> None:
+        from bus.messages import FRAME_BODY, yaw_of
+
+        if self.pose is None:
+            return
+        self._time(msg.header.stamp)
+        v = np.array([msg.velocity.x, msg.velocity.y, msg.velocity.z])
+        if msg.frame == FRAME_BODY:
+            v = yaw_rotate(v, yaw_of(self.pose[1]))
+        self.rec.log("world/cmd", self.rr.Arrows3D(origins=[self.pose[0]], vectors=[v],
+                                                   colors=[[250, 120, 0]]))
+
+
+# ------------------------------------------------------------------ feeds
+def view_messages(view: RunView, messages: Iterable[tuple[str, Any]]) -> int:
+    """Feed ``(topic name, message)`` pairs to ``view``; returns how many."""
+    n = 0
+    for name, msg in messages:
+        view.handle(name, msg)
+        n += 1
+    return n
+
+
+def log_messages(path: str | Path, vehicle: str | None = None) -> Iterable[tuple[str, Any]]:
+    """The decodable messages of a log (an .mcap file or a run directory, split runs
+    file by file) that a view draws, as (topic name, message). Checks the files first:
+    ValueError naming the path if there is no log there."""
+    from bus.log_reader import EpisodeLogReader, LogReadError, log_files
+
+    p = Path(path)
+    if not p.exists():
+        raise ValueError(f"{p}: no such log")
+    files = log_files(p) if p.is_dir() else [p]
+    if not files:
+        raise ValueError(f"{p}: no .mcap file in this directory")
+    try:
+        readers = [EpisodeLogReader(f) for f in files]
+        first = next(iter(readers[0].messages()), None)
+    except LogReadError as err:
+        raise ValueError(f"{p}: {err}") from None
+    if first is None:
+        raise ValueError(f"{p}: no readable message (not an MCAP log, or empty)")
+
+    def messages() -> Iterable[tuple[str, Any]]:
+        for reader in readers:
+            for m in reader.messages():
+                if m.name in VIEW_TOPICS and (vehicle is None or m.vehicle == vehicle):
+                    try:
+                        yield m.name, m.decode()
+                    except Exception:  # noqa: BLE001 - a damaged message is skipped
+                        continue
+
+    return messages()
+
+
+class LiveFeed:
+    """Bus subscriptions of one vehicle feeding a :class:`RunView` from one thread.
+    Zenoh callbacks only enqueue (bounded; a full queue is a counted drop); the scan is
+    kept as raw bytes, newest only, and decoded when drawn."""
+
+    def __init__(self, bus: Any, vehicle: str, view: RunView, maxsize: int = 2048) -> None:
+        import zenoh
+
+        from bus import keys
+
+        self.view = view
+        self._q: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=maxsize)
+        self.dropped = 0
+        self._subs = [bus.subscribe(t, vehicle, lambda msg, t=t: self._put(t, msg))
+                      for t in VIEW_TOPICS if t != "lidar/points"]
+        self._scan_sub = bus.session.declare_subscriber(
+            keys.key(vehicle, keys.LIDAR_POINTS),
+            lambda s: self._put("lidar/points", s.payload.to_bytes()))
+        self._zenoh = zenoh
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="skyloop-viz", daemon=True)
+        self._thread.start()
+
+    def _put(self, name: str, msg: Any) -> None:
+        try:
+            self._q.put_nowait((name, msg))
+        except queue.Full:
+            self.dropped += 1
+
+    def _run(self) -> None:
+        from bus.keys import msgtype
+        from bus.messages import decode
+
+        while not self._stop.is_set():
+            try:
+                name, msg = self._q.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                if name == "lidar/points":
+                    if self.view.step % self.view.scan_every or self._q.qsize() > 64:
+                        continue  # not drawn at this step, or the viewer is behind
+                    msg = decode(msgtype("lidar/points"), msg)
+                self.view.handle(name, msg)
+            except Exception:  # noqa: BLE001 - one bad message must not stop the view
+                log.exception("viz: drawing %s failed", name)
+
+    def close(self) -> None:
+        """Undeclare every subscriber, then stop the drawing thread."""
+        for s in self._subs:
+            s.close()
+        self._scan_sub.undeclare()
+        self._stop.set()
+        self._thread.join(5.0)
+
+
+def run_live(vehicle: str, target: Target, stop: threading.Event, *,
+             session_config: Any = None, scan_every: int = 5, web_port: int = 9090,
+             grpc_port: int = 9876) -> dict[str, int]:
+    """``skyloop viz``: draw ``vehicle``'s run from the bus until ``stop``; declares the
+    readiness token ``viz`` once subscribed. Returns counters."""
+    from bus.node import Bus
+
+    rec, url = open_recording(target, web_port=web_port, grpc_port=grpc_port,
+                              recording_name=f"skyloop {vehicle} live")
+    view = RunView(rec, scan_every=scan_every)
+    bus = Bus.open(session_config)
+    try:
+        feed = LiveFeed(bus, vehicle, view)
+        bus.declare_ready(vehicle, "viz")
+        print(f"viz: drawing {vehicle} to {url or target.path or 'the native viewer'}",
+              flush=True)
+        try:
+            while not stop.wait(0.2):
+                pass
+        except KeyboardInterrupt:
+            pass
+        feed.close()
+    finally:
+        bus.close()
+    rec.flush()
+    if target.kind == "save":
+        rec.disconnect()
+    return {**view.counts, "dropped": feed.dropped}
+
+
+def view_log(path: str | Path, target: Target, *, vehicle: str | None = None,
+             scan_every: int = 5, web_port: int = 9090, grpc_port: int = 9876,
+             wait: bool = True) -> dict[str, int]:
+    """``skyloop view LOG``: draw a recorded run; with ``web`` (and ``wait``) serve it
+    until Ctrl-C. Returns counters."""
+    t0 = time.monotonic()
+    messages = log_messages(path, vehicle)  # a bad path fails before any viewer starts
+    rec, url = open_recording(target, web_port=web_port, grpc_port=grpc_port,
+                              recording_name=f"skyloop {Path(path).name}")
+    view = RunView(rec, scan_every=scan_every)
+    n = view_messages(view, messages)
+    rec.flush()
+    print(f"view: {n} messages, {view.counts['scans_drawn']} scans drawn in "
+          f"{time.monotonic() - t0:.1f} s", flush=True)
+    if target.kind == "save":
+        rec.disconnect()
+        print(f"saved {target.path} (open it with: rerun {target.path})", flush=True)
+    elif target.kind == "web":
+        print(f"open {url} (Ctrl-C to stop)", flush=True)
+        if wait:
+            try:
+                while True:
+                    time.sleep(1.0)
+            except KeyboardInterrupt:
+                pass
+    return view.counts
+
+
+# ------------------------------------------------------------------ commands
+def _target(text: str) -> Target:
+    import argparse
+
+    try:
+        return parse_target(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err).split(": ", 1)[-1]) from None
+
+
+def viz_target(text: str) -> str:
+    """argparse type of ``skyloop up --viz``: the text, once it parses as a target."""
+    _target(text)
+    return text
+
+
+def _view_flags(p: Any, default: str) -> None:
+    from skyloop.argtypes import positive_int
+
+    p.add_argument("--viz", type=_target, default=parse_target(default), metavar="TARGET",
+                   help=f"{TARGETS} (default: {default})")
+    p.add_argument("--scan-every", type=positive_int, default=5, metavar="N",
+                   help="draw the LiDAR scan every N steps (default: 5)")
+    p.add_argument("--web-port", type=int, default=9090,
+                   help="--viz web: the viewer's HTTP port (default: 9090)")
+    p.add_argument("--grpc-port", type=int, default=9876,
+                   help="--viz web: the data's gRPC port (default: 9876)")
+
+
+def cmd_view(args: Any) -> int:
+    """``skyloop view LOG``."""
+    from skyloop.signals import stop_on_sigterm
+
+    stop_on_sigterm()
+    view_log(args.log, args.viz, vehicle=args.vehicle, scan_every=args.scan_every,
+             web_port=args.web_port, grpc_port=args.grpc_port)
+    return 0
+
+
+def cmd_viz(args: Any) -> int:
+    """``skyloop viz``: the live view node."""
+    from bus.session import SessionConfig
+    from skyloop.signals import stop_on_sigterm
+
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    stop_on_sigterm()
+    cfg = SessionConfig.from_flags(args.mode, args.connect, args.listen, args.zenoh_config)
+    c = run_live(args.vehicle, args.viz, threading.Event(), session_config=cfg,
+                 scan_every=args.scan_every, web_port=args.web_port, grpc_port=args.grpc_port)
+    print(f"viz: drew {c['messages']} messages, {c['scans_drawn']} scans; dropped "
+          f"{c['dropped']}", flush=True)
+    return 0
+
+
+def add_viewer_commands(sub: Any) -> None:
+    """``skyloop view`` and ``skyloop viz`` on ``sub`` (argparse subparsers)."""
+    from skyloop.argtypes import add_bus_flags
+
+    p = sub.add_parser("view", help="show a recorded run in 3D (Rerun)")
+    p.add_argument("log", help="an .mcap file or a run directory (skyloop up --log-dir)")
+    p.add_argument("--vehicle", default=None, help="draw one vehicle (default: every one)")
+    _view_flags(p, "spawn")
+    p.set_defaults(func=cmd_view)
+    p = sub.add_parser("viz", help="live 3D view node (Rerun) of one vehicle on the bus")
+    add_bus_flags(p)
+    _view_flags(p, "spawn")
+    p.set_defaults(func=cmd_viz)
