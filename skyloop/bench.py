@@ -16,7 +16,8 @@ import time
 from pathlib import Path
 
 MODULES = ["bench_flight", "bench_lidar", "bench_perception", "bench_env", "bench_td3",
-           "bench_train", "bench_stack", "bench_record", "bench_mavlink_fuzz", "bench_soak"]
+           "bench_train", "bench_stack", "bench_viz", "bench_record", "bench_mavlink_fuzz",
+           "bench_soak"]
 #: run only when named in ``--only`` (an hour by default)
 ON_REQUEST = {"bench_soak"}
 
