@@ -42,3 +42,56 @@ def test_rings_are_the_lidar_channels():
     cfg = lidar.config
     rings = m.elevation_rings(pts, cfg.min_elevation_deg, cfg.max_elevation_deg, cfg.channels)
     np.testing.assert_array_equal(rings, rays % 16)
+
+
+# ------------------------------------------------------------------ the skyloop_msgs package
+def test_ros2_package_lists_every_msg_and_dependency(tmp_path, capsys):
+    """The generated interface package: every bus/msg/*.msg copied and listed in
+    rosidl_generate_interfaces, every package whose types they use (read from the type
+    store's field definitions, independently of the generator) a dependency in
+    package.xml and CMakeLists.txt."""
+    import xml.etree.ElementTree as ET
+
+    from bus import ros2_pkg
+
+    assert ros2_pkg.main(["--out", str(tmp_path)]) == 0
+    assert "skyloop_msgs" in capsys.readouterr().out
+    root = tmp_path / "skyloop_msgs"
+    names = sorted(p.name for p in m.MSG_DIR.glob("*.msg"))
+    assert names and sorted(p.name for p in (root / "msg").glob("*.msg")) == names
+    for name in names:
+        assert (root / "msg" / name).read_bytes() == (m.MSG_DIR / name).read_bytes()
+    assert {f"skyloop_msgs/msg/{n[:-4]}" for n in names} == set(m.PROJECT_TYPES)
+
+    def used(type_name: str) -> set[str]:
+        out = set()
+        for _, (kind, detail) in m.TYPESTORE.fielddefs[type_name][1]:
+            sub = detail[0] if kind in (3, 4) else detail  # arrays, sequences: element
+            if isinstance(sub, tuple) and sub[0] == 2:
+                sub = sub[1]
+            if isinstance(sub, str):
+                out.add(sub.split("/")[0])
+        return out
+
+    expected = set().union(*(used(t) for t in m.PROJECT_TYPES)) - {"skyloop_msgs"}
+    assert expected == {"builtin_interfaces", "geometry_msgs", "std_msgs"}
+
+    pkg = ET.parse(root / "package.xml").getroot()
+    assert pkg.get("format") == "3" and pkg.findtext("name") == "skyloop_msgs"
+    assert {e.text for e in pkg.findall("depend")} == expected
+    assert {e.text for e in pkg.findall("buildtool_depend")} == {
+        "ament_cmake", "rosidl_default_generators"}
+    assert pkg.findtext("exec_depend") == "rosidl_default_runtime"
+    assert pkg.findtext("member_of_group") == "rosidl_interface_packages"
+    assert pkg.find("export").findtext("build_type") == "ament_cmake"
+
+    cmake = (root / "CMakeLists.txt").read_text()
+    assert "project(skyloop_msgs)" in cmake
+    block = cmake.split("rosidl_generate_interfaces(${PROJECT_NAME}", 1)[1].split(")", 1)[0]
+    assert sorted(line.strip().strip('"') for line in block.splitlines()
+                  if line.strip().startswith('"')) == [f"msg/{n}" for n in names]
+    deps_line = next(line for line in block.splitlines() if "DEPENDENCIES" in line)
+    assert set(deps_line.split()[1:]) == expected
+    for dep in expected | {"ament_cmake", "rosidl_default_generators"}:
+        assert f"find_package({dep} REQUIRED)" in cmake
+    assert "ament_package()" in cmake
