@@ -306,7 +306,7 @@ class RunView:
         if not trail or np.linalg.norm(trail[-1] - p) > 0.05:
             trail.append(p)
             self.rec.log("world/trail", rr.LineStrips3D([np.asarray(trail)],
-                                                         colors=[[40, 90, 230]], radii=[0.05]))
+                                                         colors=[[40, 90, 230]], radii=[-2.0]))
         self.rec.log("plots/altitude", rr.Scalars(float(p[2])))
         self.rec.log("plots/speed", rr.Scalars(float(np.linalg.norm(v))))
         if self.ep.goal is not None:
@@ -329,8 +329,9 @@ class RunView:
         self._time(msg.header.stamp)
         pts = points_from_pointcloud(msg)
         pts = pts[np.isfinite(pts).all(axis=1)]
+        # radii < 0: in UI points, so that the scan shows from afar
         self.rec.log("world/vehicle/lidar", self.rr.Points3D(pts, colors=range_colors(pts),
-                                                             radii=[0.03]))
+                                                             radii=[-1.5]))
         self.counts["scans_drawn"] += 1
 
     def _observation(self, msg: Any) -> None:
