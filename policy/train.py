@@ -11,8 +11,22 @@ Gaussian exploration noise), step the env, store the transition with its *base* 
 (terminal only on collision/goal, never on the 300-step truncation), and one agent
 update per env step. Per episode end: the goal-reward variant rewrites the episode's
 rewards in the replay buffer (TR/NGR/EGR/ABR), a CSV row is written, TensorBoard scalars
-are logged. ``envs`` envs are stepped in turn (``policy.collector.Collector``), each its
-own stream of episodes in the replay buffer.
+are logged (below). ``envs`` envs are stepped in turn (``policy.collector.Collector``),
+each its own stream of episodes in the replay buffer.
+
+TensorBoard, one point per finished episode on two x-axes, each its own run directory so
+that a resume purges each at its own step:
+
+- ``OUT/tb``, x = episodes finished: ``episode/return`` (after the goal reward),
+  ``episode/steps``, ``episode/success_rate_500``, ``episode/collision_rate_500``,
+  ``loss/critic_loss``, ``loss/actor_loss``, ``loss/q1`` (the latest update's; the actor's
+  from the latest delayed update), ``time/env_steps_per_s`` (this session's mean) and
+  ``time/env_steps``; and the run's hyperparameters (the hparams plugin: the
+  ``TrainConfig`` and the agent's config), whose metric is ``episode/success_rate_500``:
+  its last value, the run's final success rate.
+- ``OUT/tb/env_steps``, x = env steps of all envs together (SB3's ``num_timesteps``): the
+  same values under ``env_steps/...`` (``env_steps/return``, ``env_steps/success_rate_500``,
+  ``env_steps/actor_loss``, ``env_steps/steps_per_s``, ``env_steps/episodes``, ...).
 
 Two loops over the same bookkeeping:
 
@@ -238,7 +252,8 @@ class Trainer:
         return self.agent.act(states, noise=True, rng=rng)
 
     def _update(self) -> None:
-        self.losses = self.agent.update(self.buffer.sample(self.agent.config.batch_size))
+        # merged: TD3 reports actor_loss only on its delayed steps; keep the latest
+        self.losses.update(self.agent.update(self.buffer.sample(self.agent.config.batch_size)))
 
     def _store(self, tr: Transition) -> None:
         """Add one transition to the replay buffer and to its episode's sums."""
@@ -379,9 +394,8 @@ class Trainer:
         elif ckpt.exists() or csv_path.exists():
             raise FileExistsError(f"{self.out} already holds a run; use --resume or a new --out")
         (self.out / "config.json").write_text(json.dumps(asdict(self.config), indent=2))
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(str(self.out / "tb"), purge_step=self.episode)
+        board = Board(self.out / "tb", self.episode, self.total_steps, resume)
+        board.start(hparams(self.config, self.agent.config))
         new_file = not csv_path.exists()
         mode = "sync" if self.config.sync else "parallel"
         with csv_path.open("a", newline="") as f, tqdm(
@@ -397,13 +411,10 @@ class Trainer:
 
             def emit(row: dict) -> None:
                 rows.writerow(row)
-                for key in ("return", "steps", "success_rate_500", "collision_rate_500"):
-                    writer.add_scalar(f"episode/{key}", row[key], self.episode)
-                for key, value in row["losses"].items():
-                    writer.add_scalar(f"loss/{key}", value, self.episode)
                 elapsed = time.perf_counter() - t0
                 self.wall_s = wall0 + elapsed
                 rate = (self.total_steps - steps0) / max(elapsed, 1e-9)
+                board.log(row, rate)
                 bar.set_postfix(success=f"{row['success_rate_500']:.0%}",
                                 steps_s=f"{rate:.0f}", refresh=False)
                 bar.update(1)
@@ -411,13 +422,15 @@ class Trainer:
                     on_episode({**row, "env_steps_per_s": rate, "wall_s": self.wall_s})
                 if self.episode % self.config.checkpoint_every == 0:
                     f.flush()
+                    board.flush()  # what the checkpoint covers is on disk, as the CSV
                     self.save()
 
             try:
                 with flush_denormals():  # a large speed-up, see policy.td3
                     (self._loop_sync if self.config.sync else self._loop_parallel)(emit)
+                board.end()  # the hparams session ends as a success
             finally:
-                writer.close()  # also when a callback or the loop raises
+                board.close()  # also when a callback or the loop raises
         self.save()
         png = plot_runs([self.out], self.out / "curve.png")
         summary = {"episodes": self.episode, "total_steps": self.total_steps,
@@ -428,6 +441,74 @@ class Trainer:
                    "checkpoint": str(ckpt)}
         (self.out / RESULT).write_text(json.dumps(summary, indent=2))
         return summary
+
+
+def hparams(config: TrainConfig, agent_config: object) -> dict[str, bool | int | float | str]:
+    """The run's hyperparameters for TensorBoard: the ``TrainConfig`` (the task as
+    ``task``), then the agent's config fields it does not have; tuples as ``400x300``."""
+    skip = {"progress", "extra", "scenario", "env"}
+    out: dict[str, bool | int | float | str] = {"task": config.task}
+    merged = {**asdict(agent_config), **asdict(config)}  # the run's values win
+    for key, value in merged.items():
+        if key in skip or value is None:
+            continue
+        if isinstance(value, (tuple, list)):
+            value = "x".join(str(v) for v in value)
+        if isinstance(value, (bool, int, float, str)):
+            out[key] = value
+    return out
+
+
+class Board:
+    """The run's TensorBoard writers: ``dir`` (x = episodes) and ``dir/env_steps``
+    (x = env steps); the module docstring lists the tags."""
+
+    METRIC = "episode/success_rate_500"  # the hparams metric: its last value
+
+    def __init__(self, directory: Path, episode: int, env_steps: int, resume: bool) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        # A resume drops what was logged after the checkpoint (its episode and env steps
+        # are the last ones kept): TensorBoard purges steps >= purge_step on each axis.
+        self.episodes = SummaryWriter(str(directory),
+                                      purge_step=episode + 1 if resume else None)
+        self.env_steps = SummaryWriter(str(directory / "env_steps"),
+                                       purge_step=env_steps + 1 if resume else None)
+
+    def start(self, hparam_dict: dict) -> None:
+        """The hparams plugin's experiment and session start (the session ends in ``end``)."""
+        from torch.utils.tensorboard.summary import hparams as hparams_summaries
+
+        exp, start, self._end = hparams_summaries(hparam_dict, {self.METRIC: 0.0})
+        self.episodes.file_writer.add_summary(exp)
+        self.episodes.file_writer.add_summary(start)
+
+    def log(self, row: dict, steps_per_s: float) -> None:
+        """One finished episode's CSV ``row`` on both axes."""
+        ep, n = row["episode"], row["total_steps"]
+        values = {key: row[key] for key in ("return", "steps", "success_rate_500",
+                                             "collision_rate_500")}
+        for key, value in values.items():
+            self.episodes.add_scalar(f"episode/{key}", value, ep)
+        for key, value in row["losses"].items():
+            self.episodes.add_scalar(f"loss/{key}", value, ep)
+        self.episodes.add_scalar("time/env_steps_per_s", steps_per_s, ep)
+        self.episodes.add_scalar("time/env_steps", n, ep)
+        values["episode_steps"] = values.pop("steps")
+        for key, value in {**values, **row["losses"], "steps_per_s": steps_per_s,
+                           "episodes": ep}.items():
+            self.env_steps.add_scalar(f"env_steps/{key}", value, n)
+
+    def end(self) -> None:
+        self.episodes.file_writer.add_summary(self._end)
+
+    def flush(self) -> None:
+        self.episodes.flush()
+        self.env_steps.flush()
+
+    def close(self) -> None:
+        self.episodes.close()
+        self.env_steps.close()
 
 
 def finished(out: Path, episodes: int) -> bool:

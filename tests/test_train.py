@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import os
 import signal
 import subprocess
@@ -12,6 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from policy.plots import curve_figure
 from policy.train import CHECKPOINT, TrainConfig, Trainer
 
 SMALL = dict(scenario="valley", seed=3, start_steps=60, buffer_size=5000, checkpoint_every=2,
@@ -38,6 +40,65 @@ def test_same_seed_same_csv_and_resume_continues_exactly(tmp_path):
     resumed = _train(part, 5, resume=True)
     assert resumed == full
     assert (part / "curve.png").stat().st_size > 1000
+
+
+def _scalars(acc, tag: str) -> list[tuple[int, float]]:
+    return [(e.step, e.value) for e in acc.Scalars(tag)]
+
+
+def test_tensorboard_two_axes_actor_loss_hparams_and_the_curve(tmp_path):
+    """Scalars against episodes (tb) and env steps (tb/env_steps), the actor loss, steps/s
+    and the hparams with the success rate as metric; the curve's title, panels, ticks."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.plugins.hparams import plugin_data_pb2
+
+    out = tmp_path / "run"
+    kw = {**SMALL, "start_steps": 20}
+    Trainer(TrainConfig(episodes=2, **kw), out).run()  # checkpoint at episode 2
+    ckpt_at_2 = (out / CHECKPOINT).read_bytes()
+    Trainer(TrainConfig(episodes=3, **kw), out).run(resume=True)
+    (out / CHECKPOINT).write_bytes(ckpt_at_2)  # episode 3 is orphaned: "died" before its
+    summary = Trainer(TrainConfig(episodes=4, **kw), out).run(resume=True)  # checkpoint
+    with (out / "episodes.csv").open(newline="") as f:
+        total_steps = [int(r["total_steps"]) for r in csv.DictReader(f)]
+    assert total_steps[-1] == summary["total_steps"] > kw["start_steps"] + 2
+
+    by_episode = EventAccumulator(str(out / "tb")).Reload()
+    tags = set(by_episode.Tags()["scalars"])
+    assert {"episode/return", "episode/success_rate_500", "loss/critic_loss",
+            "loss/actor_loss", "time/env_steps_per_s", "time/env_steps"} <= tags
+    # each axis purged after its checkpoint, and only there: one point per episode
+    assert [s for s, _ in _scalars(by_episode, "episode/return")] == [1, 2, 3, 4]
+    assert all(v > 0 for _, v in _scalars(by_episode, "time/env_steps_per_s"))
+    # the actor's loss at every episode end after the first delayed update, as the critic's
+    assert len(_scalars(by_episode, "loss/actor_loss")) == len(
+        _scalars(by_episode, "loss/critic_loss")) > 0
+    assert _scalars(by_episode, "episode/success_rate_500")[-1][1] == pytest.approx(
+        summary["success_rate_500"])
+
+    by_steps = EventAccumulator(str(out / "tb" / "env_steps")).Reload()
+    assert {"env_steps/return", "env_steps/success_rate_500", "env_steps/actor_loss",
+            "env_steps/steps_per_s", "env_steps/episodes"} <= set(by_steps.Tags()["scalars"])
+    assert [s for s, _ in _scalars(by_steps, "env_steps/episodes")] == total_steps
+    assert [v for _, v in _scalars(by_steps, "env_steps/episodes")] == [1, 2, 3, 4]
+
+    hp = {tag: plugin_data_pb2.HParamsPluginData.FromString(content)
+          for tag, content in by_episode.PluginTagToContent("hparams").items()}
+    start = hp["_hparams_/session_start_info"].session_start_info.hparams
+    assert start["algo"].string_value == "td3" and start["reward"].string_value == "abr"
+    assert start["task"].string_value == "valley" and start["seed"].number_value == 3
+    assert start["lr"].number_value > 0 and start["hidden"].string_value == "400x300"
+    metrics = hp["_hparams_/experiment"].experiment.metric_infos
+    assert [m.name.tag for m in metrics] == ["episode/success_rate_500"]
+    assert "_hparams_/session_end_info" in hp  # the run finished
+
+    fig = curve_figure([out])
+    assert fig._suptitle.get_text() == "TD3 + ABR on valley, seed 3"
+    assert [ax.get_xlabel() for ax in fig.axes] == ["episode"] * 3
+    assert "return" in fig.axes[2].get_ylabel()
+    fig.canvas.draw()
+    ticks = [t for t in fig.axes[0].get_xticks() if 1 <= t <= 4]
+    assert ticks and all(float(t).is_integer() for t in ticks)
 
 
 def _children(pid: int) -> list[int]:
