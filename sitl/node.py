@@ -73,27 +73,39 @@ seconds. Outside OFFBOARD nobody answers steps, so steps are paced by the wall c
 step is wall-paced; in OFFBOARD the node waits for the command of step ``k`` until the
 step's deadline, else flies the newest one. Latency (scan publish -> matching command
 back) is measured in both.
+
+**Parts** (composed, no inheritance): :class:`SimNode` builds them and runs the node
+(warm-up, readiness, the ground phase, the episodes, the summary).
+:class:`~sitl.node_pacing.StackClock` (stamps and the commander's clock),
+:class:`~sitl.node_pacing.Pacer` (wall-clock pacing), :class:`~sitl.node_pacing.CommandGate`
+(which command answers which step, the lockstep timeout, stale/late/missed counts),
+:class:`~sitl.node_pacing.Rejoin` (what is kept after lockstep broke, to join the policy
+again), :class:`~sitl.node_step.GoalIntake` (goals from the bus),
+:class:`~sitl.node_step.ControlStep` (one control period) and
+:class:`~sitl.node_episodes.EpisodeRunner` (the phases above). The caller's
+:class:`SimNodeConfig` is never changed: the node runs on
+:meth:`SimNodeConfig.resolved`'s copy.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import math
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from bus import keys
-from bus import messages as m
-from bus.task import TASK
-from sitl.commander import State
-from sitl.node_step import POLL_S, SimNodeConfig, StepLoop
+from bus.node import Bus
+from sitl.commander import Commander
+from sitl.episode import EpisodeSim
+from sitl.node_episodes import EpisodeRunner
+from sitl.node_pacing import CommandGate, Pacer, Rejoin, StackClock
+from sitl.node_step import ControlStep, GoalIntake, SimNodeConfig
 from sitl.node_util import quat_from_matrix, quat_from_yaw
+from sitl.vehicle_service import VehicleService
 
 __all__ = ["EPISODE_LINE", "READY_LINE", "SUMMARY_LINE", "SimNode",
            "SimNodeConfig", "quat_from_matrix", "quat_from_yaw"]
@@ -104,8 +116,64 @@ SUMMARY_LINE = "SKYLOOP-SUMMARY "
 READY_LINE = "SKYLOOP-SIM-READY"
 
 
-class SimNode(StepLoop):
+class SimNode:
     """Runs the vehicle and its episodes over a bus (see the module docstring)."""
+
+    def __init__(self, bus: Bus, config: SimNodeConfig) -> None:
+        self.bus = bus
+        if (config.free_flight or config.goals_from_bus) and not config.realtime:
+            log.info("free flight runs in real time")  # nothing answers steps for a GCS
+        self.config = c = config.resolved()
+        self.sim = EpisodeSim(c.episode)
+        self.clock = StackClock(round(self.sim.vehicle.config.control_period * 1e9))
+        v = c.vehicle
+        pub = {t: bus.publisher(t, v) for t in (keys.EPISODE, keys.CLOCK, keys.ODOM,
+                                                 keys.TRUTH, keys.LIDAR_POINTS)}
+        self.pub = pub
+        self.cmds = bus.inbox(keys.CMD_VEL, v, maxsize=256)
+        goal_inbox = bus.inbox(keys.GOAL, v, maxsize=16)
+        self.commander = Commander()
+        self.service = VehicleService(bus, v, self.commander, self.sim.vehicle)
+        self.rejoin = Rejoin()
+        self.gate = CommandGate(self.cmds, self.commander, self.clock, self.rejoin,
+                                c.lockstep_timeout_s, serve=self._serve_requests)
+        self.service.take_setpoints = self.gate.take
+        for name, value in c.params.items():
+            if not self.service.set_param(name, value):
+                raise ValueError(f"bad parameter {name}={value!r} (see bus/params.py)")
+        area = self.sim.world.scenario.area
+        fence = self.commander.config.geofence
+        if fence > 0 and (area.size_x**2 + area.size_y**2) ** 0.5 > fence:
+            log.warning("scenario %s spans more than GF_MAX_HOR_DIST = %g m: a long flight "
+                        "may end in a geofence RTL (the env has no geofence)", c.scenario,
+                        fence)
+        self.pacer = Pacer(self.clock.period, self._serve)
+        self.goals = GoalIntake(goal_inbox, c, self.sim, self.service)
+        self.step = ControlStep(c, self.sim, self.commander, self.service, self.clock,
+                                self.pacer, self.gate, self.goals, pub)
+        self.stopping = threading.Event()  # set: end the episode (aborted) and the run
+        self.episodes = EpisodeRunner(c, self.step, self.rejoin, self.stopping)
+        self.results: list[dict] = []
+
+    def now(self) -> float:
+        """The commander's clock: control steps flown since start, in seconds."""
+        return self.clock.now()
+
+    @property
+    def goal_rejects(self) -> int:
+        """Goals from the bus no episode could reach."""
+        return self.goals.rejects
+
+    def _serve_requests(self) -> None:
+        """Requests, and the status (on changes, and as a keepalive)."""
+        now = self.clock.now()
+        self.service.serve(now)
+        self.service.publish_status(self.clock.stamp(), now)
+
+    def _serve(self) -> None:
+        """What the node does while it waits for a paced tick: commands, requests, status."""
+        self.gate.drain()
+        self._serve_requests()
 
     def wait_subscribers(self) -> None:
         """Wait (bounded) until something listens to the scan, clock and episode topics."""
@@ -114,163 +182,34 @@ class SimNode(StepLoop):
                 log.warning("no subscriber on %s after %.0f s; starting anyway",
                             self.pub[t].key, self.config.match_timeout_s)
 
-    def run_episode(self, i: int, goal: np.ndarray | None = None) -> dict:
-        """Episode ``i``: seeded and placed airborne, or (``goal`` given) from where the
-        vehicle is toward ``goal``."""
-        c, s = self.config, self.sim
-        seed = c.seed + i
-        if goal is None:
-            s.reset(np.random.default_rng(seed))
-            self.commander.place(self.now(), airborne=True, mode=self._resume)
-        else:
-            s.new_goal(goal)
-        self.pub[keys.EPISODE].put(m.episode_start(i, seed, s.start, s.goal, self._stamp(),
-                                                   c.scenario))
-        task = replace(TASK, max_steps=math.inf if c.free_flight else c.max_steps,
-                       goal_radius=c.goal_radius, goal_max_altitude=c.goal_max_altitude)
-        path = [s.vehicle.truth.position.copy()]
-        flown = False  # the episode has flown OFFBOARD (seeded: it is placed in OFFBOARD)
-        missed = self.missed
-        self._missing = False  # a new episode waits the full lockstep timeout again
-        while True:
-            collided = self.tick(i)
-            truth = s.vehicle.truth
-            path.append(truth.position.copy())
-            outcome = task.outcome(collided, s.goal_distance(), float(truth.position[2]),
-                                   s.steps)
-            offboard = self.commander.state == State.OFFBOARD
-            broken = None if c.free_flight else \
-                "the vehicle left OFFBOARD" if flown and not offboard else \
-                "a step's command did not come" if self.missed > missed else None
-            if outcome is None and (self._pending_goal is not None or self.stopping.is_set()
-                                    or broken):
-                outcome = "aborted"
-                if broken:
-                    self._rejoin_after = self.now()
-                    # the step whose command did not come: its late answer means the
-                    # policy is alive, only slow (a loaded machine), so flying goes on
-                    self._late_stamp = (self.g - 1) * self.period_ns if missed != self.missed \
-                        else None
-                    log.warning("episode %d aborted at step %d: %s (%s)", i, s.steps, broken,
-                                self.commander.state)
-            flown = flown or offboard
-            if outcome is not None:
-                break
-        # The terminal pose, for logs (training from logs needs it; only the recorder
-        # listens to truth, so the lockstep chain is untouched).
-        self.pub[keys.TRUTH].put(m.odometry(truth.position, truth.velocity,
-                                            quat_from_matrix(truth.rotation), self._stamp()))
-        self.pub[keys.EPISODE].put(m.episode_end(i, outcome, s.steps, self._stamp(), seed,
-                                                 c.scenario))
-        length = float(np.sum(np.linalg.norm(np.diff(np.array(path), axis=0), axis=1)))
-        return {"episode": i, "seed": seed, "outcome": outcome, "steps": s.steps,
-                "path_length": length}
-
-    def _next_goal(self, i: int, outcome: str) -> np.ndarray | None:
-        """The goal of episode ``i`` (None: a seeded, placed episode; with
-        ``goals_from_bus``: stopping)."""
-        if self._pending_goal is not None:
-            goal, self._pending_goal = self._pending_goal, None
-            return goal
-        if self.config.goals_from_bus:
-            if outcome == "collision":  # back on the ground where it fell
-                self._place_on_ground(self.sim.vehicle.truth.position)
-            return self.wait_goal()
-        if not self.config.free_flight:
-            if self._rejoin_after is not None:
-                self.wait_rejoin(self._rejoin_after)
-                self._rejoin_after = None
-            return None
-        start, goal = self.sim.world.sample_start_goal(
-            np.random.default_rng(self.config.seed + i))
-        if outcome == "collision":  # back on the ground at this episode's start
-            self._place_on_ground(start)
-        return goal
-
-    def wait_rejoin(self, since: float) -> None:
-        """Seeded episodes, after one aborted at commander time ``since`` because the
-        vehicle left OFFBOARD or a lockstep command did not come: fly control steps
-        outside any episode (failsafes, requests, status) until the vehicle is in
-        OFFBOARD asked for after that, e.g. by a restarted policy node once it is ready
-        to answer steps (a companion still starting may stream setpoints already), or,
-        still in OFFBOARD, until the missed step's command comes late (the policy is
-        alive, only slow); the next episode then starts placed as usual."""
-        log.info("waiting for OFFBOARD to be asked for again before the next episode")
-        cmdr = self.commander
-
-        def late_answer() -> bool:
-            return self._late_stamp is not None and self._last_cmd is not None and \
-                m.nanoseconds(self._last_cmd.header.stamp) == self._late_stamp
-
-        while not self.stopping.is_set() and not (
-                cmdr.state == State.OFFBOARD and (cmdr.offboard_asked > since or late_answer())):
-            if self.tick(None):
-                self._place_on_ground(self.sim.vehicle.truth.position)
-
-    def wait_goal(self) -> np.ndarray | None:
-        """``goals_from_bus``: fly control steps outside any episode (the commander's
-        output, or a hold the policy streams) until a goal comes; None if stopping."""
-        while not self.stopping.is_set():
-            if self._pending_goal is not None:
-                goal, self._pending_goal = self._pending_goal, None
-                return goal
-            if self.tick(None):
-                self._place_on_ground(self.sim.vehicle.truth.position)
-            est = self.sim.vehicle.estimate  # telemetry for the bridge (stack time stands)
-            self.pub[keys.ODOM].put(m.odometry(est.position, est.velocity,
-                                               quat_from_yaw(est.yaw), self._stamp()))
-        return None
-
-    def _place_on_ground(self, start: np.ndarray) -> None:
-        self.sim.place_on_ground(float(start[0]), float(start[1]), self.sim.vehicle.estimate.yaw)
-        self.commander.place(self.now(), airborne=False)
-
-    def ground_phase(self, go: Callable[[], Any] | None) -> None:
-        """Until "go" (see the module docstring): on the ground, serving requests."""
-        started = threading.Event()
-        if go is not None:
-            threading.Thread(target=lambda: (go(), started.set()), daemon=True).start()
-        while not (started.is_set() or self.stopping.is_set()):
-            if go is None and (self.config.free_flight
-                               or self.commander.state == State.OFFBOARD):
-                return
-            if self.commander.state == State.OFFBOARD:  # nothing answers steps yet
-                self._next_tick = None
-                self._serve_until(time.monotonic() + POLL_S)
-                self.service.publish_status(self._stamp(), self.now())
-                continue
-            if self.tick(None):
-                self._place_on_ground(self.sim.vehicle.truth.position)
-        self._resume = self.commander.state
-
     def run(self, emit: Any = print, go: Any = None) -> dict:
         """Run every episode; ``emit`` gets one JSON line per episode and the summary.
         With ``go`` (a callable that blocks), the node warms up, emits ``READY_LINE`` and
         flies the ground phase until ``go()`` returns (``skyloop up`` uses it)."""
-        c, s = self.config, self.sim
+        c, s, episodes = self.config, self.sim, self.episodes
         s.reset(np.random.default_rng(c.seed))  # warm up: the first scan compiles (numba)
         s.scan()
-        self._place_on_ground(s.start)  # episode 0's start; its goal is free flight's
-        self.service.publish_status(self._stamp(), self.now(), force=True)
+        episodes.place_on_ground(s.start)  # episode 0's start; its goal is free flight's
+        self.service.publish_status(self.clock.stamp(), self.clock.now(), force=True)
         if go is not None:
             self.bus.declare_ready(c.vehicle, "sim")  # what the launcher waits on
             emit(READY_LINE)
-        self.ground_phase(go)
+        episodes.ground_phase(go)
         self.wait_subscribers()
-        self.timing = dict.fromkeys(self.timing, 0.0)  # the episodes' share only
+        self.step.reset_timing()  # the episodes' share only
         t0 = time.monotonic()
         goal = s.goal.copy() if c.free_flight else None
         i = 0
         try:
             if c.goals_from_bus:
-                goal = self.wait_goal()
+                goal = episodes.wait_goal()
             while (i < c.episodes or (c.free_flight and c.episodes <= 0)) \
                     and not self.stopping.is_set() and (goal is not None or not c.free_flight):
-                r = self.run_episode(i, goal)
+                r = episodes.run_episode(i, goal)
                 self.results.append(r)
                 emit(EPISODE_LINE + json.dumps(r))
                 i += 1
-                goal = self._next_goal(i, r["outcome"])
+                goal = episodes.next_goal(i, r["outcome"])
         except KeyboardInterrupt:
             if not c.free_flight:
                 raise
@@ -285,13 +224,14 @@ class SimNode(StepLoop):
         for o in ("success", "collision", "timeout", "aborted"):
             out[o] = sum(r["outcome"] == o for r in self.results)
         steps = sum(r["steps"] for r in self.results)
+        gate = self.gate
         out.update(steps=steps, mean_steps=steps / n if n else 0.0, wall_s=wall_s,
                    steps_per_s=steps / wall_s if wall_s > 0 else 0.0,
-                   stale_commands=self.stale, late_steps=self.late, missed_steps=self.missed,
+                   stale_commands=gate.stale, late_steps=gate.late, missed_steps=gate.missed,
                    param_rejects=self.service.param_rejects, goal_rejects=self.goal_rejects,
-                   **{k: round(v, 3) for k, v in self.timing.items()})
-        if self.latencies_ms:
-            lat = np.array(self.latencies_ms)
+                   **{k: round(v, 3) for k, v in self.step.timing.items()})
+        if gate.latencies_ms:
+            lat = np.array(gate.latencies_ms)
             out.update(latency_ms_p50=float(np.percentile(lat, 50)),
                        latency_ms_p99=float(np.percentile(lat, 99)),
                        latency_ms_max=float(lat.max()))
