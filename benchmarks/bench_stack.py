@@ -10,6 +10,12 @@ Keys:
 - ``stack_realtime_latency_ms_p50``/``_p99``: the same in real time (10 Hz, wall
   clock), i.e. scan to setpoint at the vehicle plus one bus hop. Goal: p99 <= 10 ms.
 - ``stack_realtime_late_steps``: steps flown on an older command (deadline missed).
+- ``stack_lockstep_cpu_ms_per_step``: where the lockstep time goes, node by node: each
+  process's CPU time (user + system, all threads, from ``/proc``) from "go" to the end
+  of the run, start-up and warm-up excluded, in ms per control step (``skyloop up``'s
+  ``cpu_ms_per_step``); ``stack_lockstep_cpu_ms_per_step_total`` their sum. On one core
+  the sum bounds the rate at about 1000 / total steps/s; with two cores the nodes
+  overlap only as far as the lockstep chain lets them (one step's hops are sequential).
 
 ``peers`` holds ``env_steps_per_s``: the in-process env (same policy, same episodes)
 measured in the same run, the ceiling the graph is compared with.
@@ -77,6 +83,7 @@ def run(quick: bool) -> dict:
     rt = run_up("--realtime", "--episodes", "1", "--max-steps", "20" if quick else "300")
     if not quick:
         rt = run_up("--realtime", "--episodes", "3")
+    cpu = lock.get("cpu_ms_per_step")  # absent where there is no /proc
     return {
         "stack_lockstep_steps_per_s": lock["steps_per_s"],
         "stack_lockstep_latency_ms_p50": lock.get("latency_ms_p50"),
@@ -84,6 +91,8 @@ def run(quick: bool) -> dict:
         "stack_realtime_latency_ms_p50": rt.get("latency_ms_p50"),
         "stack_realtime_latency_ms_p99": rt.get("latency_ms_p99"),
         "stack_realtime_late_steps": rt.get("late_steps"),
+        "stack_lockstep_cpu_ms_per_step": cpu,
+        "stack_lockstep_cpu_ms_per_step_total": round(sum(cpu.values()), 3) if cpu else None,
         "peers": {"inprocess_env_shipped_policy_steps_per_s": env_steps_per_s(1 if quick else 10)},
     }
 

@@ -32,7 +32,14 @@ to a restarted router by themselves, in about 2.5 s), and the run goes on:
 the vehicle's failsafe holds meanwhile, the episode in progress ends ``aborted``
 (``sitl.node``) and the next one starts once the restarted policy is in OFFBOARD; the
 summary counts the restarts. The sim and the recorder are never restarted (a new sim
-would be a new run; a new recorder a second log)."""
+would be a new run; a new recorder a second log).
+
+Where the time goes: at "go" and again at the end of the run (the sim has exited, not yet
+reaped; the others still run) the launcher reads each child's CPU time (user + system,
+every thread, from ``/proc/<pid>/stat``; nothing where there is no ``/proc``), and the
+summary gives ``cpu_ms_per_step``: per node, the CPU milliseconds it spent after "go"
+(start-up and warm-up excluded) per control step of the episodes. A restarted node counts
+from its restart (its start-up included), without the processes it replaced."""
 
 from __future__ import annotations
 
@@ -77,6 +84,29 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
         return s.getsockname()[1]
 
 
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of process ``pid`` (all its threads) from
+    ``/proc/<pid>/stat``; None where there is no ``/proc`` or the process is gone
+    (an exited child still shows its time until it is reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()  # the name may hold spaces
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime, stime
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def exited(proc: subprocess.Popen) -> bool:
+    """Whether ``proc`` has exited, without reaping it where the OS allows (its
+    ``/proc`` entry, CPU time included, stays until :meth:`~subprocess.Popen.poll`)."""
+    if proc.returncode is not None:
+        return True
+    try:
+        return os.waitid(os.P_PID, proc.pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None
+    except (AttributeError, ChildProcessError, OSError):  # no waitid, or reaped already
+        return proc.poll() is not None
+
+
 def _pdeathsig() -> None:  # runs in the child between fork and exec: no Zenoh there
     try:
         import ctypes
@@ -113,6 +143,8 @@ class Graph:
         self.log_path: str | None = None
         self.ready = {name: threading.Event() for name in ("policy", "record", "sim", "viz")}
         self.restarts: collections.Counter[str] = collections.Counter()
+        self.cpu_at_go: dict[int, float] = {}  # pid -> CPU seconds when "go" was sent
+        self.cpu_s: dict[str, float] = {}  # node -> CPU seconds from "go" to the end
         self.zenoh_configs: Path | None = None  # ``skyloop certs`` output: <node>.json5
         self._lock = threading.Lock()
 
@@ -161,6 +193,18 @@ class Graph:
                 self.log_path = line.rsplit(" into ", 1)[-1].split(";")[0]
             elif child.name == "viz" and line.startswith("viz: drawing"):
                 print(line, flush=True)  # where to look (the web viewer's address)
+
+    def read_cpu(self) -> dict[int, float]:
+        """CPU seconds of every child (pid -> s) that ``/proc`` still shows."""
+        return {c.proc.pid: t for c in self.children if (t := cpu_seconds(c.proc.pid))
+                is not None}
+
+    def cpu_since_go(self) -> None:
+        """Each node's CPU seconds since "go" (``cpu_s``), read now; call it before the
+        children are stopped and while an exited one is not reaped yet."""
+        now = self.read_cpu()
+        self.cpu_s = {c.name: now[c.proc.pid] - self.cpu_at_go.get(c.proc.pid, 0.0)
+                      for c in self.children if c.proc.pid in now}
 
     def on_ready(self, node: str, alive: bool) -> None:
         """A node's readiness token appeared (or went): the bus, not its stdout, says
@@ -314,11 +358,12 @@ def run_up(args: argparse.Namespace) -> int:
             if (c := graph.wait_for(graph.ready[name], name, timeout)) is not None:
                 return _died(graph, c)
         assert sim.proc.stdin is not None
+        graph.cpu_at_go = graph.read_cpu()  # what start-up and warm-up cost stays out
         sim.proc.stdin.write("go\n")
         sim.proc.stdin.flush()
         bus.close()  # readiness is known; a restart forks, never with a session open
         bus = None
-        while sim.proc.poll() is None:
+        while not exited(sim.proc):
             if (c := graph.dead(exclude="sim")) is not None:
                 if not _may_restart(graph, c, args):
                     return _died(graph, c)
@@ -329,6 +374,8 @@ def run_up(args: argparse.Namespace) -> int:
                               f"'{c.name}')", file=sys.stderr, flush=True)
                         graph.restart(along, nodes[name])
             time.sleep(0.05)
+        graph.cpu_since_go()  # before the others stop, the sim not reaped yet
+        sim.proc.poll()
         if sim.proc.returncode != 0 or graph.summary is None:
             return _died(graph, sim)
         graph.stop(keep="viz" if args.viz == "web" else None)
@@ -336,6 +383,8 @@ def run_up(args: argparse.Namespace) -> int:
         signum = exc.signum if isinstance(exc, Stopped) else signal.SIGINT
         print(f"{signal.Signals(signum).name}: stopping every node", file=sys.stderr,
               flush=True)
+        if graph.cpu_at_go:  # the run had started: where its time went so far
+            graph.cpu_since_go()
         graph.stop()
         if graph.summary is not None:
             _summary(graph, args, time.monotonic() - t0)
@@ -426,6 +475,12 @@ def _summary(graph: Graph, args: argparse.Namespace, wall_s: float) -> dict[str,
     print(f"summary: {n} episodes on {s.get('scenario')} ({s.get('mode')}): {rates}; "
           f"mean steps {s.get('mean_steps', 0):.1f}; {s.get('steps_per_s', 0):.0f} control "
           f"steps/s{lat}{restarts}", flush=True)
+    steps = s.get("steps", 0)
+    if graph.cpu_s and steps:
+        s["cpu_ms_per_step"] = {k: round(v * 1e3 / steps, 3) for k, v in graph.cpu_s.items()}
+        per = ", ".join(f"{k} {v:.2f}" for k, v in s["cpu_ms_per_step"].items())
+        print(f"cpu per control step after go (ms): {per}; total "
+              f"{sum(s['cpu_ms_per_step'].values()):.2f}", flush=True)
     if graph.log_path:
         print(f"log: {graph.log_path}", flush=True)
     return s

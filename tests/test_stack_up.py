@@ -95,6 +95,11 @@ def test_summary_matches_env(runs, env_episodes):
         assert summary["mean_steps"] == np.mean([e["steps"] for e in env_episodes])
         assert summary["steps_per_s"] > 0
         assert "summary:" in stdout and "log:" in stdout
+        # CPU per control step of each node after "go" (skyloop.launcher, /proc)
+        cpu = summary["cpu_ms_per_step"]
+        assert all(cpu[n] > 0 for n in ("sim", "perception", "policy", "bridge")), cpu
+        assert "record" in cpu and ("router" in cpu) == summary["router"], cpu
+        assert "cpu per control step after go (ms): " in stdout
 
 
 @pytest.mark.slow
@@ -234,6 +239,23 @@ def test_a_signal_stops_the_graph_with_a_summary(sig, code):
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_cpu_time_of_a_child_is_read_until_it_is_reaped():
+    """What ``cpu_ms_per_step`` rests on: an exited child keeps its CPU time in ``/proc``
+    until it is reaped, and ``launcher.exited`` does not reap it."""
+    proc = subprocess.Popen([sys.executable, "-c", "import time\nt = time.process_time()\n"
+                             "while time.process_time() - t < 0.3: pass"])
+    deadline = time.monotonic() + 60
+    while not launcher.exited(proc):
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert proc.returncode is None  # not reaped
+    cpu = launcher.cpu_seconds(proc.pid)
+    assert cpu is not None and cpu >= 0.25
+    assert proc.poll() == 0 and launcher.exited(proc)
+    assert launcher.cpu_seconds(proc.pid) is None  # reaped: gone
+    assert launcher.cpu_seconds(os.getpid()) > 0
 
 
 def test_launcher_lines_match_nodes():
