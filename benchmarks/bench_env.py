@@ -10,6 +10,12 @@ renderer of ``sitl.render_fast``) on frames of a scripted episode, after the fir
 frame and a few warm-up frames, median of several repeats; ``render_first_frame_ms`` is
 the first frame of a fresh env (the per-world map precompute and one frame), median of
 a few fresh envs.
+
+``world_build_ms`` is what a new world drawn for an episode costs (``family:`` and
+``mix:`` scenarios, ``sitl.families``): the terrain, obstacles, collision structures,
+free-space grid and the LiDAR's Embree scene (``EpisodeSim.use_world``), median over
+fresh worlds of each family, per family under ``world_build_ms_by_family``. Compare with
+an episode: ``env_steps_per_s`` and 100-300 steps.
 """
 
 from __future__ import annotations
@@ -82,9 +88,29 @@ def measure_pyflyt(steps: int, repeats: int) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def measure_world_build(worlds: int) -> dict:
+    """Median ms to build a fresh world of each family into an episode core."""
+    from sitl.episode import EpisodeSim
+    from sitl.families import VALIDATION_SEED0
+
+    sim = EpisodeSim()
+    sim.use_world("forest#1")  # warm-up: numba kernels, Embree
+    by_family = {}
+    for family in ("valley", "forest", "city", "dynamic"):
+        times = []
+        for i in range(worlds):
+            t0 = time.perf_counter()
+            sim.use_world(f"{family}#{VALIDATION_SEED0 + 10_000 + i}")  # not built before
+            times.append((time.perf_counter() - t0) * 1000)
+        by_family[family] = statistics.median(times)
+    return {"world_build_ms": statistics.median(by_family.values()),
+            "world_build_ms_by_family": by_family}
+
+
 def run(quick: bool) -> dict:
     steps, repeats = (300, 3) if quick else (1500, 5)
     result = {"env_steps_per_s": measure_env(steps, repeats)}
+    result.update(measure_world_build(3 if quick else 7))
     result.update(measure_render(100 if quick else 300, repeats))
     result["peers"] = measure_pyflyt(steps, repeats)
     return result

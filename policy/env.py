@@ -72,9 +72,11 @@ class UavNavEnv(gymnasium.Env):
         reward_config: RewardConfig | None = None,
         observation_config: ObservationConfig | None = None,
         render_backend: str = "fast",
+        world_every: int = 1,
     ) -> None:
         self.config = config or EnvConfig(
-            episode=EpisodeConfig(scenario=scenario, lidar_max_range=lidar_max_range))
+            episode=EpisodeConfig(scenario=scenario, lidar_max_range=lidar_max_range,
+                                  world_every=world_every))
         self.reward_config = reward_config or RewardConfig()
         self.obs_config = observation_config or ObservationConfig()
         if render_mode not in (None, "rgb_array"):
@@ -108,6 +110,7 @@ class UavNavEnv(gymnasium.Env):
             seed, self._seed = self._seed, None
         super().reset(seed=seed)
         self.sim.reset(self.np_random, goal=(options or {}).get("goal"))
+        self.world, self.lidar = self.sim.world, self.sim.lidar  # a drawn world: its own
         self.steps = 0
         self.stacker.reset()
         self.path = [self.vehicle.truth.position.copy()]

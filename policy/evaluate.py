@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from bus.task import TASK, TaskSpec
 from policy.env import UavNavEnv
-from policy.rollout import run_episodes, summarize
+from policy.rollout import run_episode, summarize
 from policy.scripted import StraightLineController
 from policy.td3 import load_actor
 
@@ -86,17 +86,38 @@ def make_controller(policy: str | None):
 
 
 def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_SEED,
-             json_path: Path | None = None, progress: bool = True) -> dict:
+             json_path: Path | None = None, progress: bool = True, *,
+             worlds: int | None = None, validation: bool = False) -> dict:
+    """Fly ``episodes`` deterministic episodes (seeds ``seed, seed + 1, ...``). With
+    ``scenario="family:NAME"`` and ``worlds=N``: episode ``i`` flies held-out world
+    ``i % N`` of the family (``sitl.families.eval_worlds``; ``validation``: the
+    validation worlds), never one drawn in training."""
+    from sitl.families import WorldSource, eval_worlds
+
+    source = WorldSource.parse(scenario)
+    if worlds is not None and (source.fixed or len(source.families) != 1
+                               or not scenario.startswith("family:")):
+        raise ValueError(f"--worlds needs --scenario family:NAME, got {scenario!r}")
+    if worlds is None and not source.fixed:
+        raise ValueError(f"--scenario {scenario}: evaluation flies held-out worlds: give "
+                         f"--worlds N")
+    names = eval_worlds(source.families[0], worlds, validation=validation) if worlds else []
     torch.set_num_threads(1)
     controller = make_controller(policy)
-    env = UavNavEnv(scenario=scenario)
+    env = UavNavEnv(scenario=names[0] if names else scenario)
     results = []
-    for r in tqdm(run_episodes(env, controller, episodes, seed), total=episodes,
-                  unit="ep", disable=not progress, desc=f"eval {scenario}"):
-        results.append(r)
+    for i in tqdm(range(episodes), total=episodes, unit="ep", disable=not progress,
+                  desc=f"eval {scenario}"):
+        if names:
+            env.sim.use_world(names[i % len(names)])
+        results.append(run_episode(env, controller, seed + i))
     env.close()
     summary = summarize(results)
     summary.update(policy=controller.name, scenario=scenario, seed=seed)
+    if names:
+        summary.update(worlds=len(names), world_seeds=[int(n.rpartition("#")[2])
+                                                       for n in (names[0], names[-1])],
+                       world_set="validation" if validation else "held-out")
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps(summary, indent=2))
@@ -105,7 +126,10 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
 
 def format_summary(s: dict) -> str:
     lo, hi = s["success_ci95"]
-    return (f"{s['policy']} on {s['scenario']}: {s['episodes']} episodes from seed {s['seed']}: "
+    where = (f" ({s['worlds']} {s['world_set']} worlds, seeds {s['world_seeds'][0]}-"
+             f"{s['world_seeds'][1]})" if "worlds" in s else "")
+    return (f"{s['policy']} on {s['scenario']}{where}: {s['episodes']} episodes from seed "
+            f"{s['seed']}: "
             f"success {s['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%}), "
             f"collision {s['collision_rate']:.1%}, timeout {s['timeout_rate']:.1%}, "
             f"mean steps {s['mean_steps']:.1f}, mean path {s['mean_path_length']:.1f} m")

@@ -111,12 +111,13 @@ class TrainConfig:
     # matmuls, float32 weights and Adam; policy.td3.best_precision says if it pays here)
     precision: str = "fp32"
     env: str = ""  # a Gymnasium env id instead of a scenario (the paper's BipedalWalker)
+    world_every: int = 1  # family:/mix: scenarios: a new world every N episodes
     goal_return: float = 0.0  # with env: the episodic return that counts as the goal
     progress: bool = True  # the tqdm bar (off under Ray Tune, which reports for itself)
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
-        from sitl.world import load_scenario  # raises ScenarioError naming the scenario
+        from sitl.families import check_scenario  # ScenarioError naming the scenario
 
         if self.algo not in ALGOS:
             raise ValueError(f"unknown algorithm {self.algo!r}; choose from {sorted(ALGOS)}")
@@ -140,7 +141,9 @@ class TrainConfig:
 
             check_env_id(self.env)
         else:
-            load_scenario(self.scenario)
+            check_scenario(self.scenario)
+        if self.world_every < 1:
+            raise ValueError(f"--world-every must be >= 1, got {self.world_every}")
 
     @property
     def task(self) -> str:
@@ -158,7 +161,8 @@ def make_envs(config: dict, n: int) -> list:
         from policy.gym_task import GymTask
 
         return [GymTask(config["env"], config["goal_return"]) for _ in range(n)]
-    return [UavNavEnv(scenario=config["scenario"], lidar_max_range=config["lidar_max_range"])
+    return [UavNavEnv(scenario=config["scenario"], lidar_max_range=config["lidar_max_range"],
+                      world_every=config.get("world_every", 1))
             for _ in range(n)]
 
 

@@ -8,24 +8,30 @@ setpoints -> same trajectory.
 Reset draws, from ``numpy.random.default_rng(seed)`` (the same generator Gymnasium's
 ``reset(seed=...)`` builds): start and goal (``World.sample_start_goal``), the initial
 yaw uniform in [-pi, pi), then one sub-seed for the vehicle's sensors (the LiDAR noise
-uses sub-seed + 1).
+uses sub-seed + 1). With a family or a mixture of worlds (``sitl.families``), reset
+first draws the world (family, then seed) from the same generator.
 """
 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from sitl.families import WorldSource
 from sitl.lidar import Lidar, LidarConfig
 from sitl.vehicle import Vehicle, VehicleConfig
 from sitl.world import UAV_BODY_RADIUS, World, load_scenario
 
+WORLD_CACHE = 4  # worlds kept built (evaluation cycles through a few)
+
 
 @dataclass
 class EpisodeConfig:
-    scenario: str = "valley"
+    scenario: str = "valley"  # a world, or worlds drawn per episode (sitl.families)
+    world_every: int = 1  # family:/mix: scenarios: a new world every N episodes
     lidar_max_range: float = 4.5  # the observation only needs points inside p_radius = 4 m
     lidar_noise_sigma: float = 0.03
     body_radius: float = UAV_BODY_RADIUS
@@ -44,17 +50,40 @@ class EpisodeSim:
 
     def __init__(self, config: EpisodeConfig | None = None) -> None:
         self.config = c = config or EpisodeConfig()
-        self.world = World(load_scenario(c.scenario))
+        if c.world_every < 1:
+            raise ValueError(f"world_every must be 1 or more, got {c.world_every}")
+        self.source = WorldSource.parse(c.scenario)
         self.vehicle = Vehicle(c.vehicle)
-        self.lidar = Lidar(self.world, LidarConfig(max_range=c.lidar_max_range,
-                                                   noise_sigma=c.lidar_noise_sigma))
+        self._worlds: OrderedDict[str, tuple[World, Lidar]] = OrderedDict()
+        self.world_builds = 0
+        self.use_world(self.source.template())
         self.start = self.goal = np.zeros(3)
         self.time = 0.0
         self.steps = 0
+        self.episodes = 0
         self.collided = False
 
+    def use_world(self, name: str) -> None:
+        """Fly world ``name`` from the next episode on (built once; the last few kept)."""
+        if name not in self._worlds:
+            world = World(load_scenario(name))
+            self._worlds[name] = (world, Lidar(world, LidarConfig(
+                max_range=self.config.lidar_max_range,
+                noise_sigma=self.config.lidar_noise_sigma)))
+            self.world_builds += 1
+            while len(self._worlds) > WORLD_CACHE:
+                self._worlds.popitem(last=False)
+        self._worlds.move_to_end(name)
+        self.world_name = name
+        self.world, self.lidar = self._worlds[name]
+
     def reset(self, rng: np.random.Generator, goal: np.ndarray | None = None) -> None:
-        """Start a new episode with randomness drawn from ``rng`` (see module docstring)."""
+        """Start a new episode with randomness drawn from ``rng`` (see module docstring);
+        with a family or mixture, a new world first (every ``world_every`` episodes),
+        drawn from ``rng`` too."""
+        if not self.source.fixed and self.episodes % self.config.world_every == 0:
+            self.use_world(self.source.draw(rng))
+        self.episodes += 1
         self.start, self.goal = self.world.sample_start_goal(rng)
         if goal is not None:
             self.goal = np.asarray(goal, dtype=float)

@@ -23,6 +23,8 @@ from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 
 
@@ -151,13 +153,46 @@ def scenario_names() -> list[str]:
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Load a scenario by name (``sitl/scenarios/<name>.toml``) or by file path."""
+    """Load a scenario by name (``sitl/scenarios/<name>.toml``) or by file path;
+    ``NAME#SEED`` is world ``SEED`` of the family ``NAME`` (:func:`world_variant`)."""
+    text = str(name_or_path)
+    if not isinstance(name_or_path, Path) and "#" in text:
+        family, _, seed_text = text.rpartition("#")
+        try:
+            seed = int(seed_text)
+        except ValueError:
+            raise ScenarioError(f"{text}: the world seed after '#' must be an integer, "
+                                f"got {seed_text!r}") from None
+        if not 0 <= seed < 2**63:
+            raise ScenarioError(f"{text}: the world seed must be in [0, 2**63), got {seed}")
+        return world_variant(load_scenario(family), seed)
     path = _resolve(name_or_path)
     data = _read_with_base(path, seen=())
     data.pop("base", None)
     scenario = _build(Scenario, data, "", path.name)
     _check_scenario(scenario, path.name)
     return _replace_source(scenario, str(path))
+
+
+def world_variant(scenario: Scenario, seed: int) -> Scenario:
+    """World ``seed`` of the family ``scenario`` is a template for: the same parameters
+    with their own seed (so new terrain, hills, ridges, trees and buildings), and the
+    aircraft loops turned about the area's centre by an angle, mirrored or not, and
+    started at phases, all drawn from ``seed``. Named ``<family>#<seed>``."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng([seed, 0x51A7])  # not the stream World draws from
+    angle, mirror = float(rng.uniform(0.0, 2 * np.pi)), bool(rng.integers(2))
+    c, s_ = np.cos(angle), np.sin(angle)
+    aircraft = []
+    for a in scenario.aircraft:
+        wps = []
+        for x, y, z in a.waypoints:
+            x = -x if mirror else x
+            wps.append((float(c * x - s_ * y), float(s_ * x + c * y), float(z)))
+        aircraft.append(replace(a, waypoints=tuple(wps), phase=float(rng.uniform(0.0, 1.0))))
+    return replace(scenario, name=f"{scenario.name}#{seed}", seed=int(seed),
+                   aircraft=tuple(aircraft))
 
 
 def _resolve(name_or_path: str | Path) -> Path:

@@ -53,7 +53,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
                          checkpoint_every=args.checkpoint_every, start_steps=args.start_steps,
                          threads=args.threads, sync=args.sync, envs=args.envs,
                          max_lead=args.max_lead, device=args.device, env=args.env or "",
-                         goal_return=args.goal_return, precision=args.precision)
+                         goal_return=args.goal_return, precision=args.precision,
+                         world_every=args.world_every)
     summary = Trainer(config, Path(args.out)).run(resume=args.resume)
     print(json.dumps(summary, indent=2))
     return 0
@@ -74,7 +75,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from policy.evaluate import evaluate, format_summary
 
     summary = evaluate(args.policy, args.scenario, args.episodes, args.seed,
-                       Path(args.json) if args.json else None)
+                       Path(args.json) if args.json else None, worlds=args.worlds,
+                       validation=args.validation)
     print(format_summary(summary))
     return 0
 
@@ -173,7 +175,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="train TD3/DDPG with a goal reward in the in-process env")
     p.add_argument("--algo", default="td3", help="td3 or ddpg")
     p.add_argument("--reward", default="abr", help="tr, ngr, egr or abr")
-    p.add_argument("--scenario", default="valley")
+    p.add_argument("--scenario", default="valley",
+                   help="a world (valley, forest, city, dynamic, a file, NAME#SEED), or worlds "
+                        "drawn per episode: family:NAME, mix:A,B[,...] or mix:A=2,B=1 "
+                        "(sitl/families.py; default: valley)")
+    p.add_argument("--world-every", type=positive_int, default=1, metavar="N",
+                   help="family:/mix: scenarios: a new world every N episodes (default: 1)")
     p.add_argument("--episodes", type=positive_int, default=5000)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="run directory (CSV, TensorBoard, checkpoints)")
@@ -211,7 +218,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("eval", help="evaluate a policy: success/collision/timeout rates, 95%% CI")
     p.add_argument("--policy", help="actor file (actor.pt or checkpoint dir's actor.pt), "
                    "'scripted' for the straight-line baseline; default: the shipped policy")
-    p.add_argument("--scenario", default="valley")
+    p.add_argument("--scenario", default="valley",
+                   help="a world, or family:NAME with --worlds (default: valley)")
+    p.add_argument("--worlds", type=positive_int, default=None, metavar="N",
+                   help="with --scenario family:NAME: fly N held-out worlds of the family "
+                        "(world seeds never drawn in training: sitl/families.py), the "
+                        "episodes spread over them")
+    p.add_argument("--validation", action="store_true",
+                   help="with --worlds: the validation worlds instead (for choosing among "
+                        "trained policies; disjoint from training and held-out worlds)")
     p.add_argument("--episodes", type=positive_int, default=500)
     p.add_argument("--seed", type=int, default=1_000_000_000, help="first episode seed")
     p.add_argument("--json", help="write the summary as JSON here")

@@ -104,7 +104,7 @@ def _methods(path: Path, data: dict) -> list[tuple[str, str]]:
 def _tasks(path: Path, data: dict) -> list[tuple[str, str]]:
     """(kind, name) pairs: ("scenario", "valley") or ("env", "BipedalWalkerHardcore-v3")."""
     from policy.gym_task import check_env_id
-    from sitl.world import load_scenario
+    from sitl.families import check_scenario
 
     tasks: list[tuple[str, str]] = []
     for kind in ("scenario", "env"):
@@ -113,7 +113,7 @@ def _tasks(path: Path, data: dict) -> list[tuple[str, str]]:
                 continue
             for name in _strings(path, data, key):
                 try:
-                    load_scenario(name) if kind == "scenario" else check_env_id(name)
+                    check_scenario(name) if kind == "scenario" else check_env_id(name)
                 except Exception as exc:  # ScenarioError, ValueError: name the field
                     raise GridError(f"{path}: {key}: {exc}") from exc
                 tasks.append((kind, name))
