@@ -53,6 +53,7 @@ from bus.log_reader import (
     read_episodes,
 )
 from bus.messages import END, EPISODE_EVENT, START, decode, encode, msgdef, outcome_name
+from bus.ros_view import latched
 
 __all__ = ["EpisodeLogWriter", "Episode", "EpisodeLogReader", "LoggedMessage", "LogReadError",
            "ReadReport", "read_episodes", "recover_log", "default_run_name", "EPISODE_METADATA"]
@@ -72,6 +73,11 @@ _QOS_YAML = (
     "  liveliness: 1\n  liveliness_lease_duration:\n    sec: 0\n    nsec: 0\n"
     "  avoid_ros_namespace_conventions: false"
 )
+#: The same for latched topics (``bus.ros_view.latched``: ``/tf_static``, the world and
+#: goal markers): reliable, transient local, keep last 1, as tf2's static broadcaster
+#: offers ``/tf_static``; ``ros2 bag play`` offers them so, and late subscribers get them.
+_QOS_LATCHED_YAML = _QOS_YAML.replace("depth: 10", "depth: 1").replace("durability: 2",
+                                                                         "durability: 1")
 _RUN_NAME_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
@@ -161,7 +167,7 @@ class EpisodeLogWriter:
             self._schemas[msgtype] = schema_id
             self._top_level(Schema(id=schema_id, name=msgtype, encoding=SCHEMA_ENCODING,
                                    data=text))
-        meta = {"offered_qos_profiles": _QOS_YAML}
+        meta = {"offered_qos_profiles": _qos(topic)}
         channel_id = self._writer.register_channel(topic, MESSAGE_ENCODING, schema_id, meta)
         self._top_level(Channel(id=channel_id, schema_id=schema_id, topic=topic,
                                 message_encoding=MESSAGE_ENCODING, metadata=meta))
@@ -264,6 +270,12 @@ class EpisodeLogWriter:
         tmp.replace(self.dir / "metadata.yaml")
 
     @property
+    def next_file_index(self) -> int:
+        """The index of the file the next message goes to (a split run opens the next
+        file with it)."""
+        return len(self.files) if self._between_files else len(self.files) - 1
+
+    @property
     def paths(self) -> list[Path]:
         """Every file of the run so far, in order."""
         return [self.dir / f["path"] for f in self.files]
@@ -281,7 +293,7 @@ class EpisodeLogWriter:
             "topics_with_message_count": [
                 {"topic_metadata": {"name": topic, "type": msgtype,
                                     "serialization_format": MESSAGE_ENCODING,
-                                    "offered_qos_profiles": _QOS_YAML},
+                                    "offered_qos_profiles": _qos(topic)},
                  "message_count": self.counts[topic]}
                 for topic, msgtype in self._types.items()],
             "compression_format": "",
@@ -326,6 +338,10 @@ def _yaml(data: dict[str, Any]) -> str:
     out = StringIO()
     yaml.dump(data, out)
     return out.getvalue().strip()
+
+
+def _qos(topic: str) -> str:
+    return _QOS_LATCHED_YAML if latched(topic) else _QOS_YAML
 
 
 def _vehicle_of(topic: str) -> str | None:

@@ -16,6 +16,15 @@ until that vehicle's next START arrives or ``end_grace_s`` (0.25 s) passes; step
 before it, anything else (status, actor weights, ...) right after it, so between
 episodes as before; stopping writes what is held.
 
+The log's 3D view (``view``, a :class:`~bus.ros_view.RosView`; ``skyloop record`` has
+one unless ``--no-ros-view``): the writer thread hands each message it writes to the
+view and writes what the view derives from it (``/tf``, ``/tf_static``, ``/clock``, the
+world, goal, aircraft and icosahedron markers, the path; see :mod:`bus.ros_view`) just
+before it, with the same log time, counted in ``derived`` (not ``written``, which stays
+the bus messages). A world (built by a worker process, :class:`bus.ros_scene.WorldWorker`)
+is written when ready; at stop the writer waits for it at most ``world_wait_s`` (1 s:
+the launcher's stop grace is 3 s for every node), then the view closes its worker.
+
 ``main(argv)`` is the ``skyloop record`` command (``python -m bus.record`` works too).
 """
 
@@ -40,10 +49,16 @@ from bus.keys import key_all, msgtype, parse_key
 from bus.log import EpisodeLogWriter
 from bus.messages import END, START, decode
 from bus.node import RateLimitedLog
+from bus.ros_view import RosView
 from bus.session import SessionConfig, open_session
 
 log = logging.getLogger("skyloop.record")
 _STOP = object()
+#: The run's time convention, in the MCAP run metadata (docs/interfaces.md, "Logs in 3D").
+TIME_METADATA = {
+    "log_time": "wall clock when the recorder received the message (ns since the epoch)",
+    "header_stamps": "stack time: sim seconds since the sim started (/clock carries it)",
+}
 
 
 @dataclass
@@ -58,18 +73,24 @@ class Recorder:
     """Subscribe ``skyloop/**`` (or ``skyloop/<vehicle>/**``) on ``session`` and write
     to ``writer`` from a background thread. Counters (:meth:`counters`): ``received``,
     ``written``, ``dropped`` (queue full), ``undecodable``, ``unknown_topic``,
-    ``write_errors``, plus ``episodes_started``/``episodes_ended`` of the writer."""
+    ``write_errors``, plus ``episodes_started``/``episodes_ended`` of the writer; with a
+    ``view``: ``derived`` (messages it added), ``view_errors`` (derivations that
+    raised), and its own ``other_vehicle`` and ``scene_errors``."""
 
     def __init__(self, session: zenoh.Session, writer: EpisodeLogWriter,
                  vehicle: str | None = None, queue_size: int = 512,
-                 validate: bool = True, end_grace_s: float = 0.25) -> None:
+                 validate: bool = True, end_grace_s: float = 0.25,
+                 view: RosView | None = None, world_wait_s: float = 1.0) -> None:
         self.writer = writer
         self.end_grace_s = end_grace_s
         self.validate = validate
+        self.view = view
+        self.world_wait_s = world_wait_s
         self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
         self._lock = threading.Lock()
         self._counts = dict.fromkeys(("received", "written", "dropped", "undecodable",
-                                      "unknown_topic", "write_errors"), 0)
+                                      "unknown_topic", "write_errors", "derived",
+                                      "view_errors"), 0)
         self._drop_log = RateLimitedLog(log, 5.0)
         self._bad_log = RateLimitedLog(log, 5.0)
         self._thread = threading.Thread(target=self._run, name="skyloop-record", daemon=True)
@@ -121,6 +142,7 @@ class Recorder:
             if item is _STOP:
                 for vehicle in list(pending):
                     release(vehicle)
+                self._finish_view()
                 return
             event = _episode_event(item[0], item[1])
             if event is not None:
@@ -140,20 +162,24 @@ class Recorder:
     def _write(self, item: tuple[str, bytes, int]) -> None:
         key_expr, data, t_ns = item
         try:
-            _, topic = parse_key(key_expr)
+            vehicle, topic = parse_key(key_expr)
             kind = msgtype(topic)
         except (ValueError, KeyError):
             self._count("unknown_topic")
             self._bad_log(logging.WARNING, "not a skyloop topic, not recorded: %s", key_expr)
             return
-        if self.validate:
+        if self.validate or self.view is not None:
             try:
-                decode(kind, data)
+                msg = decode(kind, data)
             except Exception as err:  # noqa: BLE001 - counted, not written
-                self._count("undecodable")
-                self._bad_log(logging.WARNING, "%s: payload does not decode as %s: %s",
-                              key_expr, kind, err)
-                return
+                if self.validate:
+                    self._count("undecodable")
+                    self._bad_log(logging.WARNING, "%s: payload does not decode as %s: %s",
+                                  key_expr, kind, err)
+                    return
+            else:
+                if self.view is not None:
+                    self._derive(vehicle, topic, msg, t_ns)
         try:
             self.writer.write("/" + key_expr, kind, data, t_ns)
             self._count("written")
@@ -161,10 +187,45 @@ class Recorder:
             self._count("write_errors")
             self._bad_log(logging.ERROR, "writing %s failed", key_expr, exc_info=True)
 
+    def _derive(self, vehicle: str, topic: str, msg: Any, t_ns: int) -> None:
+        """The view's messages derived from ``msg``, written before it (same log time)."""
+        try:
+            derived = self.view.derive(vehicle, topic, msg, self.writer.next_file_index)
+        except Exception:  # noqa: BLE001 - the bus message is still written
+            self._count("view_errors")
+            self._bad_log(logging.ERROR, "log view failed on %s", topic, exc_info=True)
+            return
+        self._write_derived(derived, t_ns)
+
+    def _write_derived(self, derived: list[tuple[str, str, bytes]], t_ns: int) -> None:
+        for ros_name, kind, payload in derived:
+            try:
+                self.writer.write(ros_name, kind, payload, t_ns)
+                self._count("derived")
+            except Exception:  # noqa: BLE001 - keep recording the rest
+                self._count("write_errors")
+                self._bad_log(logging.ERROR, "writing %s failed", ros_name, exc_info=True)
+
+    def _finish_view(self) -> None:
+        """At stop: a world still being built gets ``world_wait_s`` to be written into
+        the open file (not into a new one of a split run)."""
+        view, w = self.view, self.writer
+        if view is None or w.first_ns is None or w.next_file_index != len(w.files) - 1:
+            return
+        try:
+            derived = view.finish(w.next_file_index, self.world_wait_s)
+        except Exception:  # noqa: BLE001 - the file still closes
+            self._count("view_errors")
+            log.error("log view failed at stop", exc_info=True)
+            return
+        self._write_derived(derived, w.last_ns)
+
     def counters(self) -> dict[str, int]:
         """Snapshot of the counters."""
         with self._lock:
             out = dict(self._counts)
+        if self.view is not None:
+            out.update(self.view.counts_snapshot())
         out["queued"] = self._q.qsize()
         out["episodes_started"] = self.writer.episodes_started
         out["episodes_ended"] = self.writer.episodes_ended
@@ -192,6 +253,8 @@ class Recorder:
                 log.error("recorder writer thread did not finish within %.0f s", timeout)
             else:
                 self.writer.close()
+            if self.view is not None:
+                self.view.close()
         return self.counters()
 
 
@@ -225,16 +288,21 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
                stop_event: threading.Event | None = None, *, vehicle: str | None = None,
                run_name: str | None = None, compression: str = "none",
                queue_size: int = 512, ready: threading.Event | None = None,
-               split_episodes: int = 0) -> RecordResult:
+               split_episodes: int = 0, ros_view: bool = True) -> RecordResult:
     """Record until ``stop_event`` is set (or Ctrl-C); return the run directory and
-    counters. ``ready`` is set once the subscriber is declared."""
+    counters. ``ready`` is set once the subscriber is declared. ``ros_view``: add the
+    log's 3D view (:mod:`bus.ros_view`, geometry from :class:`bus.ros_scene.SitlScene`)."""
     stop = stop_event if stop_event is not None else threading.Event()
     session = open_session(session_config)
     try:
         writer = EpisodeLogWriter(out_dir, run_name, compression=compression,
-                                  metadata={"vehicle": vehicle or "*"},
+                                  metadata={"vehicle": vehicle or "*", **TIME_METADATA},
                                   split_episodes=split_episodes)
-        recorder = Recorder(session, writer, vehicle, queue_size=queue_size)
+        view = None
+        if ros_view:
+            from bus.ros_scene import SitlScene, WorldWorker
+            view = RosView(SitlScene(), worlds=WorldWorker())
+        recorder = Recorder(session, writer, vehicle, queue_size=queue_size, view=view)
         token = session.liveliness().declare_token(  # what the launcher waits on
             keys.ready_key(vehicle or keys.ANY_VEHICLE, "record"))
         log.info("recording %s into %s", recorder.key_expr, writer.path)
@@ -269,6 +337,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--split-episodes", type=int, default=0, metavar="N",
                    help="a new MCAP file of the run every N episodes, never inside one "
                         "(default 0: one file)")
+    p.add_argument("--no-ros-view", action="store_true",
+                   help="only the bus messages: no TF, /clock, world, goal, path or "
+                        "icosahedron topics for Foxglove and RViz")
     p.add_argument("--queue", type=int, default=512,
                    help="messages buffered between Zenoh and the writer (default: 512)")
     p.add_argument("--mode", choices=("peer", "client", "router"), default=None,
@@ -297,11 +368,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         signal.signal(sig, lambda *_: stop.set())
     result = run_record(args.out, cfg, stop, vehicle=args.vehicle, run_name=args.run_name,
                         compression=args.compression, queue_size=args.queue,
-                        split_episodes=args.split_episodes)
+                        split_episodes=args.split_episodes, ros_view=not args.no_ros_view)
     c = result.counters
     print(f"recorded {c['written']} messages ({c['episodes_ended']} episodes ended) into "
           f"{result.path}; dropped {c['dropped']}, undecodable {c['undecodable']}, "
-          f"unknown topic {c['unknown_topic']}, write errors {c['write_errors']}",
+          f"unknown topic {c['unknown_topic']}, write errors {c['write_errors']}; "
+          f"derived {c['derived']} (TF, clock, markers, path), view errors "
+          f"{c['view_errors'] + c.get('scene_errors', 0)}",
           flush=True)
     return 0
 

@@ -95,3 +95,349 @@ def test_ros2_package_lists_every_msg_and_dependency(tmp_path, capsys):
     for dep in expected | {"ament_cmake", "rosidl_default_generators"}:
         assert f"find_package({dep} REQUIRED)" in cmake
     assert "ament_package()" in cmake
+
+
+# ------------------------------------------------------------------ helpers
+def frame_ids(msg, out: set[str] | None = None) -> set[str]:
+    """Every frame a message names: its headers' ``frame_id`` (nested ones too: markers,
+    transforms, path poses) and ``child_frame_id``; a marker's unused texture aside."""
+    out = set() if out is None else out
+    if not hasattr(msg, "__msgtype__"):
+        return out
+    if msg.__msgtype__ == "std_msgs/msg/Header":
+        out.add(msg.frame_id)
+        return out
+    for name in msg.__dataclass_fields__:
+        if name == "texture" or name.isupper():
+            continue
+        value = getattr(msg, name)
+        if name == "child_frame_id":
+            out.add(value)
+        elif isinstance(value, list):
+            for item in value:
+                frame_ids(item, out)
+        else:
+            frame_ids(value, out)
+    return out
+
+
+def tf_tree(messages) -> dict[str, set[str]]:
+    """parent -> children of every transform in ``/tf`` and ``/tf_static`` messages."""
+    tree: dict[str, set[str]] = {}
+    for msg in messages:
+        for t in msg.transforms:
+            tree.setdefault(t.header.frame_id, set()).add(t.child_frame_id)
+    return tree
+
+
+def reachable(tree: dict[str, set[str]], root: str = "world") -> set[str]:
+    seen, todo = {root}, [root]
+    while todo:
+        for child in tree.get(todo.pop(), ()):
+            if child not in seen:
+                seen.add(child)
+                todo.append(child)
+    return seen
+
+
+# ------------------------------------------------------------------ the recorder's view
+class FakeScene:
+    """A scene without the simulator: one-triangle terrain and crowns, one aircraft
+    flying along x at 1 m/s, perception's icosahedron."""
+
+    def warm(self) -> None:
+        pass
+
+    def aircraft(self, scenario):
+        return lambda t: np.array([[t, 0.0, 3.0, 1.0, 0.5, 0.2, 1.0, 0.0]])
+
+    def world(self, scenario):
+        from bus.ros_view import Mesh, WorldGeometry
+
+        tri = Mesh(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
+        return WorldGeometry(tri, Mesh.empty(), Mesh.empty(), tri, 0.3)
+
+    def icosahedron(self):
+        from perception.icosahedron import TruncatedIcosahedron
+
+        ico = TruncatedIcosahedron(1.0)
+        return ico.vertices, ico.faces
+
+
+def test_recorder_view_in_every_file_of_a_split_run(tmp_path):
+    """Through a real bus into a log split every episode: each file begins with
+    /tf_static and holds the world and the goal (latched, as a file is opened alone);
+    TF, clock, path (every 3rd pose and at END), aircraft at episode time, the
+    icosahedron only when its colours change; another vehicle's messages derive
+    nothing; the bus messages are all there, counted apart from the derived ones."""
+    from loopback import free_port
+
+    from bus import keys
+    from bus.log import EpisodeLogWriter
+    from bus.log_reader import EpisodeLogReader, log_files
+    from bus.node import Bus
+    from bus.record import Recorder
+    from bus.ros_view import RosView
+    from bus.session import SessionConfig, open_session
+
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    bus = Bus.open(cfg)
+    session = open_session(cfg)
+    writer = EpisodeLogWriter(tmp_path, "split", split_episodes=1)
+    recorder = Recorder(session, writer, view=RosView(FakeScene(), path_every=3))
+    pts = np.array([[2.0, 0.0, 0.0], [0.0, 2.0, 0.5]], np.float32)
+    try:
+        pubs = {t: bus.publisher(t, "uav1") for t in keys.TOPICS}
+        other = bus.publisher(keys.TRUTH, "uav2")
+        for pub in (*pubs.values(), other):
+            assert pub.wait_matched(10.0)
+        sent = 0
+
+        def put(topic, msg):
+            nonlocal sent
+            pubs[topic].put(msg)
+            sent += 1
+
+        g = 0
+        for ep in range(2):
+            put(keys.EPISODE, m.episode_start(ep, 5 + ep, (0, 0, 3), (9, 0, 3), 0.1 * g,
+                                              "fake"))
+            for step in range(4):
+                t = 0.1 * g
+                put(keys.CLOCK, m.step_clock(step, t, ep))
+                put(keys.TRUTH, m.odometry((step, 0, 3), (1, 0, 0), (0, 0, 0, 1), t))
+                put(keys.LIDAR_POINTS, m.pointcloud(pts, t, rings=[7, 9]))
+                faces = np.zeros(35, np.float32)
+                faces[3] = 0.5 if step >= 2 else 0.0  # colours change once an episode
+                put(keys.OBSERVATION, m.observation(faces, t, ep, step))
+                if ep == 0 and step == 1:
+                    other.put(m.odometry((0, 0, 0), (0, 0, 0), (0, 0, 0, 1), t))
+                    sent += 1
+                g += 1
+            put(keys.TRUTH, m.odometry((4, 0, 3), (1, 0, 0), (0, 0, 0, 1), 0.1 * g))
+            put(keys.EPISODE, m.episode_end(ep, "success", 4, 0.1 * g))
+        assert recorder.wait_written(sent, timeout=20.0)
+        counters = recorder.stop()
+    finally:
+        recorder.stop()
+        bus.close()
+        session.close()
+    assert counters["written"] == sent and counters["dropped"] == 0
+    assert counters["other_vehicle"] == 1 and counters["view_errors"] == 0
+    assert counters["scene_errors"] == 0
+    files = log_files(writer.dir)
+    assert len(files) == 2
+    derived = 0
+    for f in files:
+        msgs = list(EpisodeLogReader(f).messages())
+        derived += sum(x.vehicle is None for x in msgs)
+        assert msgs[0].topic == "/tf_static"
+        by_topic: dict[str, list] = {}
+        for x in msgs:
+            by_topic.setdefault(x.topic, []).append(x.decode())
+        assert len(by_topic["/skyloop/uav1/viz/world"]) == 1
+        assert len(by_topic["/skyloop/uav1/viz/goal"]) >= 1
+        assert len(by_topic["/tf"]) == 5  # 4 steps and the terminal pose; uav2's: none
+        assert [m.seconds(c.clock) for c in by_topic["/clock"]] == \
+            [m.seconds(c.sim_time) for c in by_topic["/skyloop/uav1/clock"]]
+        paths = by_topic["/skyloop/uav1/path"]
+        assert [len(p.poses) for p in paths] == [1, 4, 5]  # poses 1 and 4, then END
+        np.testing.assert_allclose([p.pose.position.x for p in paths[-1].poses],
+                                   [0, 1, 2, 3, 4])
+        air = by_topic["/skyloop/uav1/viz/aircraft"]
+        starts = [m.seconds(x.header.stamp) for x in by_topic["/skyloop/uav1/episode"]]
+        assert [a.markers[0].pose.position.x for a in air] == pytest.approx(
+            [m.seconds(a.markers[0].header.stamp) - starts[0] for a in air])
+        ico = by_topic["/skyloop/uav1/viz/icosahedron"]
+        assert len(ico) == 2  # all free (a DELETE, with the edges), then face 3 occupied
+        assert ico[0].markers[0].action == 2 and ico[0].markers[1].ns == "icosahedron_edges"
+        assert len(ico[1].markers) == 1 and len(ico[1].markers[0].points) == 3 * 3  # a pentagon
+        frames = set().union(*(frame_ids(x) for v in by_topic.values() for x in v))
+        tree = tf_tree(by_topic["/tf"] + by_topic["/tf_static"])
+        assert frames - {""} <= reachable(tree) == {"world", "base_link", "lidar"}
+    assert derived == counters["derived"]
+
+
+def test_world_worker_builds_worlds_in_a_process_of_its_own():
+    """The recorder's world builder: a child process answering scenario names with the
+    world's markers (decimated terrain coloured by height, the city's buildings), and an
+    unknown scenario with an error; in a session of its own (the launcher's stop
+    signals go to the recorder's process group), ended by closing its pipe."""
+    import os
+
+    from bus.ros_scene import WorldWorker
+    from bus.ros_view import MARKER_ARRAY
+
+    worker = WorldWorker()
+    try:
+        city, bad = worker.request("city"), worker.request("no-such-scenario")
+        assert worker.request("city") is city  # one build per scenario in flight
+        assert os.getpgid(worker.proc.pid) != os.getpgid(0)
+        assert city.done.wait(120.0) and bad.done.wait(120.0)
+        assert city.error is None and "no-such-scenario" in str(bad.error)
+        world = m.decode(MARKER_ARRAY, city.result)
+        by_ns = {mk.ns: mk for mk in world.markers}
+        assert set(by_ns) == {"terrain", "buildings", "body"}
+        assert len(by_ns["buildings"].points) % 3 == 0 and len(by_ns["buildings"].points) > 0
+        assert len(by_ns["terrain"].points) <= 3 * 4000
+        assert worker.proc.poll() is None
+    finally:
+        worker.close()
+    assert worker.proc.poll() is not None
+
+
+# ------------------------------------------------------------------ a real run
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """``skyloop up`` on the dynamic scenario (aircraft crossing), scripted policy,
+    3 short episodes (long enough for the recorder's worker to build the world on a
+    loaded machine), recorded; returns the run directory and the wall-clock window."""
+    import socket
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    from loopback import free_port
+
+    out = tmp_path_factory.mktemp("ros_log")
+    udp = [free_port(socket.SOCK_DGRAM) for _ in range(4)]
+    cmd = [sys.executable, "-m", "skyloop", "up", "--hub", f"tcp/127.0.0.1:{free_port()}",
+           "--api-port", str(udp[0]), "--api-local-port", str(udp[1]),
+           "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3]),
+           "--scenario", "dynamic", "--episodes", "3", "--max-steps", "60",
+           "--policy", "scripted", "--log-dir", str(out)]
+    t0 = time.time_ns()
+    proc = subprocess.run(cmd, cwd=Path(__file__).resolve().parent.parent,
+                          capture_output=True, text=True, timeout=300)
+    t1 = time.time_ns()
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    (run,) = out.glob("run-*")
+    return run, (t0, t1)
+
+
+@pytest.fixture(scope="module")
+def flight_messages(flight):
+    """Every message of the run read back with rosbags (types from the log itself):
+    (topic, type, log time, message) in log-time order."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([flight[0]]) as reader:
+        return [(c.topic, c.msgtype, t, reader.deserialize(raw, c.msgtype))
+                for c, t, raw in reader.messages()]
+
+
+def test_flight_log_topics_are_there_and_decode(flight_messages):
+    from bus.ros_view import CLOCK_MESSAGE, MARKER_ARRAY, PATH, TF_MESSAGE
+
+    types = {topic: kind for topic, kind, _, _ in flight_messages}
+    v = "/skyloop/uav1"
+    expected = {"/tf": TF_MESSAGE, "/tf_static": TF_MESSAGE, "/clock": CLOCK_MESSAGE,
+                f"{v}/viz/world": MARKER_ARRAY, f"{v}/viz/goal": MARKER_ARRAY,
+                f"{v}/viz/aircraft": MARKER_ARRAY, f"{v}/viz/icosahedron": MARKER_ARRAY,
+                f"{v}/path": PATH, f"{v}/lidar/points": m.POINTCLOUD2}
+    assert {t: types.get(t) for t in expected} == expected
+    count = {t: sum(x[0] == t for x in flight_messages) for t in types}
+    assert count["/tf_static"] == 1 and count[f"{v}/viz/world"] == 1
+    assert count[f"{v}/viz/goal"] == 3 and count["/clock"] == count[f"{v}/clock"]
+    assert count["/tf"] == count[f"{v}/truth"] == count[f"{v}/viz/aircraft"]
+    world = next(x[3] for x in flight_messages if x[0] == f"{v}/viz/world")
+    kinds = {mk.ns: mk for mk in world.markers}
+    assert set(kinds) == {"terrain", "body"}  # the dynamic world: terrain, no obstacles
+    terrain = kinds["terrain"]
+    assert terrain.type == 11 and len(terrain.points) % 3 == 0
+    assert 1000 <= len(terrain.points) // 3 <= 4000 and len(terrain.colors) == len(terrain.points)
+    assert kinds["body"].header.frame_id == "base_link" and kinds["body"].frame_locked
+
+
+def test_flight_log_every_frame_is_in_the_tf_tree(flight_messages):
+    """Every frame id a message of the log names is reachable from ``world`` through
+    /tf and /tf_static, and each scan has its vehicle pose at its own stamp (an exact
+    TF lookup, no extrapolation)."""
+    tree = tf_tree(x[3] for x in flight_messages if x[0] in ("/tf", "/tf_static"))
+    assert reachable(tree) == {"world", "base_link", "lidar"}
+    used: dict[str, set[str]] = {}
+    for topic, _, _, msg in flight_messages:
+        for frame in frame_ids(msg):
+            used.setdefault(frame, set()).add(topic)
+    assert "" not in used, used.get("")  # nothing in this log is without a frame
+    assert set(used) <= reachable(tree), {f: used[f] for f in set(used) - reachable(tree)}
+    tf_stamps = {m.nanoseconds(t.header.stamp) for topic, _, _, msg in flight_messages
+                 if topic == "/tf" for t in msg.transforms}
+    clouds = [msg for topic, _, _, msg in flight_messages if topic.endswith("lidar/points")]
+    assert clouds and all(m.nanoseconds(c.header.stamp) in tf_stamps for c in clouds)
+
+
+def test_flight_log_stamps_are_sim_time_and_log_times_wall_clock(flight, flight_messages):
+    """The convention (docs/interfaces.md, "Logs in 3D"): log time = when the recorder
+    received the message (wall clock, inside the run's window); header stamps = stack
+    time from 0; /clock carries the step clock's stack time, in order; a derived
+    message has the log time of the message it was derived from."""
+    t0, t1 = flight[1]
+    assert all(t0 <= t <= t1 for _, _, t, _ in flight_messages)
+    stamps = [m.seconds(msg.header.stamp) for _, _, _, msg in flight_messages
+              if hasattr(msg, "header")]
+    assert max(stamps) < 3 * 60 * 0.1 + 1  # 3 episodes of at most 60 steps of 0.1 s
+    clock = [(t, m.nanoseconds(msg.clock)) for topic, _, t, msg in flight_messages
+             if topic == "/clock"]
+    steps = [(t, m.nanoseconds(msg.sim_time)) for topic, _, t, msg in flight_messages
+             if topic == "/skyloop/uav1/clock"]
+    assert clock == steps and [c for _, c in clock] == sorted(c for _, c in clock)
+    truth = {(t, m.nanoseconds(msg.header.stamp)) for topic, _, t, msg in flight_messages
+             if topic.endswith("/truth")}
+    tf = {(t, m.nanoseconds(msg.transforms[0].header.stamp))
+          for topic, _, t, msg in flight_messages if topic == "/tf"}
+    assert tf == truth
+
+
+def test_flight_log_cloud_path_aircraft_and_faces(flight, flight_messages):
+    from bus.log_reader import read_episodes
+
+    episodes, report = read_episodes(flight[0])
+    assert len(episodes) == 3 and report.clean, report.summary()
+    clouds = [msg for topic, _, _, msg in flight_messages if topic.endswith("lidar/points")]
+    assert [f.name for f in clouds[0].fields] == ["x", "y", "z", "intensity", "ring"]
+    rings = np.concatenate([m.pointcloud_field(c, "ring") for c in clouds])
+    assert len(rings) > 0 and rings.max() <= 15
+    assert all((m.pointcloud_field(c, "intensity") == m.LIDAR_INTENSITY).all() for c in clouds)
+    # the path at each END is the episode's true positions, terminal pose included
+    finals, last = [], None
+    for topic, _, _, msg in flight_messages:
+        if topic.endswith("/path"):
+            last = msg
+        elif topic.endswith("/episode") and msg.event == m.END:
+            finals.append(last)
+    for ep, path in zip(episodes, finals, strict=True):
+        truth = np.array([m.odometry_values(x.decode())[0] for x in ep.topic("truth")])
+        assert len(path.poses) == ep.steps + 1
+        np.testing.assert_allclose([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
+                                    for p in path.poses], truth)
+    # aircraft at the episode's time (stamp - START stamp), as the simulator's world has them
+    from sitl.world import World, load_scenario
+
+    world = World(load_scenario("dynamic"))
+    start_ns = None
+    for topic, _, _, msg in flight_messages:
+        if topic.endswith("/episode") and msg.event == m.START:
+            start_ns = m.nanoseconds(msg.header.stamp)
+        elif topic.endswith("/viz/aircraft"):
+            t = (m.nanoseconds(msg.markers[0].header.stamp) - start_ns) / 1e9
+            got = [[k.pose.position.x, k.pose.position.y, k.pose.position.z]
+                   for k in msg.markers]
+            np.testing.assert_allclose(got, world.aircraft_positions(t), atol=1e-9)
+    faces = [msg for topic, _, _, msg in flight_messages if topic.endswith("/icosahedron")]
+    assert faces and faces[0].markers[-1].ns == "icosahedron_edges"
+    assert all(mk.header.frame_id == "lidar" and mk.frame_locked
+               for msg in faces for mk in msg.markers)
+
+
+def test_flight_log_metadata_latches_static_topics(flight):
+    import yaml
+
+    meta = yaml.safe_load((flight[0] / "metadata.yaml").read_text())
+    qos = {t["topic_metadata"]["name"]: yaml.safe_load(t["topic_metadata"]["offered_qos_profiles"])
+           for t in meta["rosbag2_bagfile_information"]["topics_with_message_count"]}
+    for topic in ("/tf_static", "/skyloop/uav1/viz/world", "/skyloop/uav1/viz/goal"):
+        assert qos[topic][0]["durability"] == 1 and qos[topic][0]["depth"] == 1  # latched
+    for topic in ("/tf", "/clock", "/skyloop/uav1/odom"):
+        assert qos[topic][0]["durability"] == 2  # volatile
