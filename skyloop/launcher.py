@@ -34,12 +34,14 @@ the vehicle's failsafe holds meanwhile, the episode in progress ends ``aborted``
 summary counts the restarts. The sim and the recorder are never restarted (a new sim
 would be a new run; a new recorder a second log).
 
-Where the time goes: at "go" and again at the end of the run (the sim has exited, not yet
-reaped; the others still run) the launcher reads each child's CPU time (user + system,
-every thread, from ``/proc/<pid>/stat``; nothing where there is no ``/proc``), and the
-summary gives ``cpu_ms_per_step``: per node, the CPU milliseconds it spent after "go"
-(start-up and warm-up excluded) per control step of the episodes. A restarted node counts
-from its restart (its start-up included), without the processes it replaced."""
+Where the time goes: at "go" and again at the end of the episodes (as the sim's summary
+line comes, before any node shuts down; failing that, once the sim has exited, before it
+is reaped and before the others are stopped) the launcher reads each child's CPU time
+(user + system, every thread, from ``/proc/<pid>/stat``; nothing where there is no
+``/proc``), and the summary gives ``cpu_ms_per_step``: per node, the CPU milliseconds it
+spent between the two (start-up, warm-up and shutdown excluded) per control step of the
+episodes. A restarted node counts from its restart (its start-up included), without the
+processes it replaced."""
 
 from __future__ import annotations
 
@@ -144,6 +146,7 @@ class Graph:
         self.ready = {name: threading.Event() for name in ("policy", "record", "sim", "viz")}
         self.restarts: collections.Counter[str] = collections.Counter()
         self.cpu_at_go: dict[int, float] = {}  # pid -> CPU seconds when "go" was sent
+        self.cpu_at_end: dict[int, float] | None = None  # ... as the sim's summary came
         self.cpu_s: dict[str, float] = {}  # node -> CPU seconds from "go" to the end
         self.zenoh_configs: Path | None = None  # ``skyloop certs`` output: <node>.json5
         self._lock = threading.Lock()
@@ -188,6 +191,8 @@ class Graph:
                 print(f"episode {r['episode']} (seed {r['seed']}): {r['outcome']} in "
                       f"{r['steps']} steps, path {r['path_length']:.1f} m", flush=True)
             elif line.startswith(SUMMARY_LINE):
+                if child.name == "sim" and self.cpu_at_go:  # the episodes are over
+                    self.cpu_at_end = self.read_cpu()
                 self.summary = json.loads(line[len(SUMMARY_LINE):])
             elif child.name == "record" and line.startswith("recorded "):
                 self.log_path = line.rsplit(" into ", 1)[-1].split(";")[0]
@@ -196,13 +201,14 @@ class Graph:
 
     def read_cpu(self) -> dict[int, float]:
         """CPU seconds of every child (pid -> s) that ``/proc`` still shows."""
-        return {c.proc.pid: t for c in self.children if (t := cpu_seconds(c.proc.pid))
-                is not None}
+        return {c.proc.pid: t for c in list(self.children)
+                if (t := cpu_seconds(c.proc.pid)) is not None}
 
     def cpu_since_go(self) -> None:
-        """Each node's CPU seconds since "go" (``cpu_s``), read now; call it before the
-        children are stopped and while an exited one is not reaped yet."""
-        now = self.read_cpu()
+        """Each node's CPU seconds since "go" (``cpu_s``) up to the sim's summary line,
+        or (none came yet) up to now: call it before the children are stopped and while
+        an exited one is not reaped yet."""
+        now = self.cpu_at_end if self.cpu_at_end is not None else self.read_cpu()
         self.cpu_s = {c.name: now[c.proc.pid] - self.cpu_at_go.get(c.proc.pid, 0.0)
                       for c in self.children if c.proc.pid in now}
 
