@@ -27,11 +27,12 @@ spend about 8 ms of CPU per step together), lockstep p50/p99 2.6-3.0 / 7-8 ms, r
 time p50/p99 3.0 / 7.7 ms, env peer 520-580 steps/s. Quick mode takes about 22 s (two
 graph start-ups of about 7 s each).
 
-Measured 2026-12-02 (load average 55-70 on the 2 cores: a training grid and other test
-runs), ``skyloop up --lockstep --episodes 10`` twice: 214 and 269 steps/s; CPU ms per
-step sim 2.63 / 2.11, perception 0.68 / 0.75, policy 0.75 / 0.54, bridge 0.61 / 0.51,
-total 4.67 / 3.90 (the sim's own wall split per step: publish incl. the scan 1.1 ms,
-flight and commander 0.6-0.7 ms, waiting for the command 1.9-2.8 ms).
+Measured 2026-12-02 (load average 64-71 on the 2 cores: a training grid and other test
+runs), two ``run_up("--lockstep", "--episodes", "10")``: 184 and 151 steps/s; CPU ms per
+step sim 1.90 / 2.14, perception 0.72 / 0.84, policy 0.67 / 0.70, bridge 0.56 / 0.62,
+total 3.85 / 4.29 (less than the 5.4 / 6.6 ms of wall time per step: the nodes waited
+for a core). The sim's own wall time per step: publish with the scan 1.1-1.4 ms, flight
+and commander 0.7-0.8 ms, waiting for the step's command 3.6-4.4 ms.
 """
 
 from __future__ import annotations
