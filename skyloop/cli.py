@@ -247,6 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
     from skyloop.viewer import add_viewer_commands
 
     add_viewer_commands(sub)
+    from skyloop.health import add_health_command
+
+    add_health_command(sub)
     return parser
 
 

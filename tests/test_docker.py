@@ -1,12 +1,14 @@
 """docker/: the compose file parses and names only real ``skyloop`` subcommands.
 
-No Docker engine here: every node service's command is parsed by the real parser and
+Without a Docker engine: every node service's command is parsed by the real parser and
 run with ``--help`` (a process per subcommand); the graph itself runs through
-``skyloop up --router`` in ``tests/test_stack_up.py`` (same nodes, client mode).
+``skyloop up --router`` in ``tests/test_stack_up.py`` (same nodes, client mode) and, with an
+engine, through docker compose in ``tests/test_docker_compose.py``.
 """
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -25,9 +27,14 @@ def compose() -> dict:
     return yaml.safe_load((DOCKER / "compose.yaml").read_text())
 
 
+def defaults(arg: str) -> str:
+    """``${VAR:-default}`` as compose interpolates it with VAR unset."""
+    return re.sub(r"\$\{[A-Z0-9_]+:-([^}]*)\}", r"\1", arg)
+
+
 def node_commands() -> dict[str, list[str]]:
     services = compose()["services"]
-    return {name: [str(a) for a in s["command"]] for name, s in services.items()
+    return {name: [defaults(str(a)) for a in s["command"]] for name, s in services.items()
             if name != "router"}
 
 
@@ -40,10 +47,15 @@ def test_compose_shape():
         env = services[name]["environment"]
         assert env["SKYLOOP_ZENOH_MODE"] == "client"
         assert env["SKYLOOP_ZENOH_CONNECT"] == "tcp/router:7447"
-    assert "14550:14550/udp" in services["bridge"]["ports"]
+    # the host's UDP 14550 is the ground station's: nothing publishes it; the GCS link's
+    # port is published on loopback only, and the Zenoh router not at all
+    ports = [p for s in services.values() for p in s.get("ports", [])]
+    assert ports == ["127.0.0.1:${SKYLOOP_GCS_LINK_PORT:-18570}:18570/udp"]
     assert "logs" in c["volumes"]
     assert any(v.startswith("logs:") for v in services["record"]["volumes"])
-    assert "FROM python:3.11" in (DOCKER / "Dockerfile").read_text()
+    assert "ARG BASE=python:3.11-slim" in (DOCKER / "Dockerfile").read_text()
+    for name in NODES:  # every node has a health check, through skyloop.health
+        assert services[name]["healthcheck"]["test"][1:4] == ["python", "-m", "skyloop.health"]
 
 
 def test_commands_parse():
@@ -55,14 +67,12 @@ def test_commands_parse():
 
             record_parser().parse_args(cmd[1:])
         else:
-            args = parser.parse_args([a.replace("${SKYLOOP_GCS_HOST:-host.docker.internal}",
-                                                "host.docker.internal") for a in cmd])
+            args = parser.parse_args(cmd)
             assert args.command == name
 
 
 def _parsed(name: str, drop: str | None = None):
-    cmd = [a.replace("${SKYLOOP_GCS_HOST:-host.docker.internal}", "host.docker.internal")
-           for a in node_commands()[name] if a != drop]
+    cmd = [a for a in node_commands()[name] if a != drop]
     return build_parser().parse_args(cmd)
 
 
