@@ -20,6 +20,7 @@ and the grid is the product of its tasks, methods and seeds::
 
 from __future__ import annotations
 
+import re
 import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
@@ -179,7 +180,8 @@ def load_grid(path: str | Path) -> Grid:
             for algo, reward in methods:
                 config = TrainConfig(algo=algo, reward=reward, seed=seed, episodes=episodes,
                                      progress=False, **{kind: task}, **options)
-                trials.append(Trial(f"{task}-{algo}+{reward}-s{seed}", config))
+                slug = re.sub(r"[^A-Za-z0-9_.+#=-]", "_", task)  # mix:a,b -> mix_a_b
+                trials.append(Trial(f"{slug}-{algo}+{reward}-s{seed}", config))
     if len({t.name for t in trials}) != len(trials):
         raise GridError(f"{path}: methods: the grid names the same trial twice")
     return Grid(name, path, tuple(trials))
