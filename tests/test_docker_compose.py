@@ -17,6 +17,11 @@ of OFFBOARD), the restart policy brings the node back, the vehicle flies OFFBOAR
 and the sim finishes its episodes; the MCAP log copied out of the volume holds every
 completed episode; ``down`` leaves no container, network or volume of the project.
 
+The two-host shape: docker/compose.vehicle.yaml (router, sim, bridge, recorder) and
+docker/compose.companion.yaml (perception, policy) as two projects on two networks,
+joined only by the router's and the policy's ports published on the host's docker0
+address (standing in for a second host): the companion flies the vehicle's episodes.
+
 Skips, with the reason, when there is no Docker engine or compose v2 (``.ci/run``
 installs and starts them: ``docker/setup-engine.sh``).
 """
@@ -89,17 +94,20 @@ class Compose:
     """``docker compose`` on docker/compose.yaml + the local-router override, project
     ``skyloop-test``."""
 
-    def __init__(self, env: dict[str, str]) -> None:
+    def __init__(self, env: dict[str, str], project: str = PROJECT,
+                 files: tuple[str, ...] = ("compose.yaml", "compose.local-router.yaml")
+                 ) -> None:
         self.env = {**os.environ, **env}
-        self.base = ["docker", "compose", "-p", PROJECT, "-f", str(DOCKER / "compose.yaml"),
-                     "-f", str(DOCKER / "compose.local-router.yaml")]
+        self.project = project
+        self.base = ["docker", "compose", "-p", project,
+                     *(a for f in files for a in ("-f", str(DOCKER / f)))]
 
     def __call__(self, *args: str, timeout: float = 300, check: bool = True
                  ) -> subprocess.CompletedProcess:
         return _run(*self.base, *args, timeout=timeout, check=check, env=self.env)
 
     def container(self, service: str) -> str:
-        return f"{PROJECT}-{service}-1"
+        return f"{self.project}-{service}-1"
 
     def state(self, service: str) -> dict:
         out = _run("docker", "inspect", "-f", "{{json .State}}|{{.RestartCount}}",
@@ -122,13 +130,14 @@ class Compose:
             if value:
                 return value
             time.sleep(poll)
-        status = {s: (self.state(s).get("Status"), self.health(s)) for s in SERVICES}
+        status = {s: (self.state(s).get("Status"), self.health(s)) for s in SERVICES
+                  if self.state(s)}
         raise AssertionError(f"timed out ({timeout:.0f} s) waiting for {what}; services: "
                              f"{status}\nsim log:\n{self.logs('sim')[-3000:]}\npolicy log:\n"
                              f"{self.logs('policy')[-2000:]}")
 
     def leftovers(self) -> list[str]:
-        label = f"label=com.docker.compose.project={PROJECT}"
+        label = f"label=com.docker.compose.project={self.project}"
         found = []
         for kind in ("container ls -a", "network ls", "volume ls"):
             out = _run("docker", *kind.split(), "-q", "--filter", label).stdout.split()
@@ -312,3 +321,44 @@ def test_compose_stack_flies_fails_safe_restarts_and_logs(image, tmp_path):
             listener.close()
         compose("down", "-v", "--timeout", "10", check=False)
     assert compose.leftovers() == []
+
+
+def test_vehicle_and_companion_as_two_projects(image, tmp_path):
+    gateway = docker0_address()
+    if gateway is None:
+        pytest.skip("no docker0 address to publish the vehicle's and companion's ports on")
+    env = {"SKYLOOP_IMAGE": IMAGE, "SKYLOOP_EPISODES": "2",
+           "SKYLOOP_GCS_LINK_PORT": str(free_udp_port()),
+           "SKYLOOP_ZENOH_BIND": gateway, "SKYLOOP_MAVLINK_BIND": gateway,
+           "SKYLOOP_COMPANION_HOST": "host.docker.internal",
+           "SKYLOOP_VEHICLE_HOST": "host.docker.internal"}
+    vehicle = Compose(env, f"{PROJECT}-vehicle", ("compose.vehicle.yaml",))
+    companion = Compose(env, f"{PROJECT}-companion", ("compose.companion.yaml",))
+    for c in (companion, vehicle):
+        c("down", "-v", "--timeout", "5", check=False)
+    try:
+        vehicle("up", "-d", timeout=600)  # returns once the sim's dependencies are healthy
+        companion("up", "-d", timeout=600)
+        vehicle.wait(lambda: vehicle.state("sim").get("Status") == "exited", 300,
+                     "the sim to finish its episodes (flown from the companion)", poll=2.0)
+        assert vehicle.state("sim")["ExitCode"] == 0
+        results = episode_lines(vehicle.logs("sim"))
+        assert len(results) == 2 and all(r["outcome"] != "aborted" for r in results), results
+        assert companion.health("policy") == "healthy"
+        # two networks: no container of one project is on the other's network
+        for c, services in ((vehicle, ("router", "record", "bridge")),
+                            (companion, ("perception", "policy"))):
+            for service in services:
+                nets = _run("docker", "inspect", "-f",
+                            "{{range $k, $v := .NetworkSettings.Networks}}{{$k}} {{end}}",
+                            c.container(service)).stdout.split()
+                assert nets == [f"{c.project}_default"], (service, nets)
+        vehicle("stop", "record", timeout=60)
+        vehicle("cp", "record:/data/logs", str(tmp_path / "logs"))
+        episodes, report = read_episodes(next((tmp_path / "logs").glob("run-*/*.mcap")))
+        assert report.episodes_complete == 2, report
+        assert [e.end_event.steps for e in episodes] == [r["steps"] for r in results]
+    finally:
+        for c in (companion, vehicle):
+            c("down", "-v", "--timeout", "10", check=False)
+    assert vehicle.leftovers() == [] and companion.leftovers() == []
