@@ -141,6 +141,13 @@ class SimNode:
         for name, value in c.params.items():
             if not self.service.set_param(name, value):
                 raise ValueError(f"bad parameter {name}={value!r} (see bus/params.py)")
+        if c.free_flight and not self.sim.source.fixed:
+            # a family in free flight: one world of it never drawn in training
+            from sitl.families import eval_worlds
+
+            self.sim.use_world(eval_worlds(self.sim.source.families[0], 1)[0])
+            log.info("free flight in %s (a held-out world of the family)",
+                     self.sim.world_name)
         area = self.sim.world.scenario.area
         fence = self.commander.config.geofence
         if fence > 0 and (area.size_x**2 + area.size_y**2) ** 0.5 > fence:

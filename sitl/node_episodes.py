@@ -51,7 +51,7 @@ class EpisodeRunner:
         else:
             s.new_goal(goal)
         self.pub[keys.EPISODE].put(m.episode_start(i, seed, s.start, s.goal, clock.stamp(),
-                                                   c.scenario))
+                                                   s.world_name))  # NAME#SEED if drawn
         task = replace(TASK, max_steps=math.inf if c.free_flight else c.max_steps,
                        goal_radius=c.goal_radius, goal_max_altitude=c.goal_max_altitude)
         path = [s.vehicle.truth.position.copy()]
@@ -87,7 +87,7 @@ class EpisodeRunner:
         self.pub[keys.TRUTH].put(m.odometry(truth.position, truth.velocity,
                                             quat_from_matrix(truth.rotation), clock.stamp()))
         self.pub[keys.EPISODE].put(m.episode_end(i, outcome, s.steps, clock.stamp(), seed,
-                                                 c.scenario))
+                                                 s.world_name))
         length = float(np.sum(np.linalg.norm(np.diff(np.array(path), axis=0), axis=1)))
         return {"episode": i, "seed": seed, "outcome": outcome, "steps": s.steps,
                 "path_length": length}

@@ -115,3 +115,25 @@ def test_eval_flies_held_out_worlds_of_a_family(tmp_path):
                                "--episodes", "1", *bad], cwd=ROOT, capture_output=True,
                               text=True, timeout=120)
         assert proc.returncode == 2 and says in proc.stderr, proc.stderr
+
+
+def test_the_stack_flies_the_drawn_world_and_logs_its_name(tmp_path):
+    """``skyloop up --scenario family:city``: the sim draws each episode's world as the
+    env does (same seed, same world, same start), and the log's START names it, so the
+    log can be rebuilt (``load_scenario(NAME#SEED)``)."""
+    from bus.log_reader import read_episodes
+
+    proc = subprocess.run([sys.executable, "-m", "skyloop", "up", "--scenario", "family:city",
+                           "--episodes", "2", "--max-steps", "15", "--policy", "scripted",
+                           "--log-dir", str(tmp_path)], cwd=ROOT, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    [run] = list(tmp_path.glob("run-*"))
+    episodes, _ = read_episodes(run)
+    env = UavNavEnv(scenario="family:city")
+    assert len(episodes) == 2
+    for ep in episodes:
+        start = ep.topic("episode")[0].decode()
+        env.reset(seed=int(start.seed))
+        assert start.scenario == env.sim.world_name and start.scenario.startswith("city#")
+        assert np.allclose([start.start.x, start.start.y], env.sim.start[:2])
