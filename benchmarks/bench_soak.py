@@ -34,6 +34,7 @@ import time
 import numpy as np
 
 from benchmarks.bench_stack import _free
+from skyloop import launcher
 
 PERIOD_NS = 100_000_000
 WINDOW_S = 600.0
@@ -109,8 +110,8 @@ def run(quick: bool, minutes: float | None = None) -> dict:
         assert proc.stdout is not None
         for line in proc.stdout:
             lines.append(line)
-            if line.startswith("started "):
-                pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
+            if (node := launcher.started(line)) is not None:
+                pids[node[0]] = node[1]
             if line.startswith("episode "):
                 flying.set()
 

@@ -72,12 +72,23 @@ EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "
 READY_LINE = "SKYLOOP-POLICY-READY"
 SIM_READY_LINE = "SKYLOOP-SIM-READY"
+STARTED_LINE = "started {name} (pid {pid})"  # one a child, and again on each restart
 GRACE_S = 3.0
 #: the nodes ``--restart on-failure`` starts again, and the nodes each one's restart
 #: takes along (rest-for-one, as in a supervision tree: the policy flies on
 #: perception's observations through the bridge's link, and joins the vehicle anew)
 RESTARTABLE = {"perception": ("policy",), "bridge": ("policy",), "policy": (),
                "router": ("policy",)}
+
+
+def started(line: str) -> tuple[str, int] | None:
+    """(node, pid) of a :data:`STARTED_LINE` of ``skyloop up``'s output, else None
+    (for tools and tests that watch a run: the newest pid of each node)."""
+    words = line.split()
+    if len(words) == 4 and words[0] == "started" and words[2] == "(pid" \
+            and words[3].endswith(")") and words[3][:-1].isdigit():
+        return words[1], int(words[3][:-1])
+    return None
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -163,7 +174,7 @@ class Graph:
         child = Child(name, proc)
         self.children.append(child)
         threading.Thread(target=self._read, args=(child,), daemon=True).start()
-        print(f"started {name} (pid {proc.pid})", flush=True)
+        print(STARTED_LINE.format(name=name, pid=proc.pid), flush=True)
         return child
 
     def restart(self, child: Child, args: list[str]) -> Child:

@@ -30,6 +30,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from bus import params as table  # noqa: E402
 from mavlink_bridge.modes import AUTO_TAKEOFF, encode_custom_mode  # noqa: E402
+from skyloop import launcher  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 ARMED = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
@@ -115,8 +116,7 @@ def vehicle(tmp_path: Path):
         yield gcs, tmp_path / "skyloop" / "params-sys1.json"
     finally:
         out = interrupt(proc)
-        assert "policy" not in [line.split()[1] for line in out.splitlines()
-                                if line.startswith("started ")]
+        assert "policy" not in [n[0] for n in map(launcher.started, out.splitlines()) if n]
         gcs.conn.close()
 
 

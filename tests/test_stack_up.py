@@ -173,8 +173,8 @@ def flying_graph() -> tuple[subprocess.Popen, dict[str, int]]:
     pids: dict[str, int] = {}
     assert proc.stdout is not None
     for line in proc.stdout:
-        if line.startswith("started "):
-            pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
+        if (node := launcher.started(line)) is not None:
+            pids[node[0]] = node[1]
         if line.startswith("episode "):  # the graph is flying
             break
     return proc, pids
@@ -198,8 +198,8 @@ def watch_up(args: list[str], on_line, timeout: float = 60.0) -> tuple[int, str]
     try:
         for line in proc.stdout:
             lines.append(line)
-            if line.startswith("started "):
-                pids[line.split()[1]] = int(line.split("pid ")[1].rstrip(")\n"))
+            if (node := launcher.started(line)) is not None:
+                pids[node[0]] = node[1]
             on_line(line, pids)
         proc.wait(timeout=timeout)
     finally:
@@ -434,3 +434,11 @@ def test_a_restarted_router_lets_the_run_go_on(tmp_path):
         # through it (lost with it, as on any broker); every other one is whole
         if outcome != "aborted" and i != 1:
             assert logged[i].complete and logged[i].outcome == outcome, (i, text)
+
+
+def test_started_lines_parse():
+    line = launcher.STARTED_LINE.format(name="perception", pid=4242)
+    assert launcher.started(line) == ("perception", 4242)
+    assert launcher.started(line + "\n") == ("perception", 4242)
+    for other in ("started", "started sim", "started sim (pid x)", "episode 0 (seed 1)"):
+        assert launcher.started(other) is None
