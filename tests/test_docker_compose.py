@@ -20,7 +20,10 @@ completed episode; ``down`` leaves no container, network or volume of the projec
 The two-host shape: docker/compose.vehicle.yaml (router, sim, bridge, recorder) and
 docker/compose.companion.yaml (perception, policy) as two projects on two networks,
 joined only by the router's and the policy's ports published on the host's docker0
-address (standing in for a second host): the companion flies the vehicle's episodes.
+address (standing in for a second host): the companion flies the vehicle's episodes;
+once on plain TCP (which a client on the host can join), once with mutual TLS and the
+router's access control from ``skyloop certs`` (which a client without this bus's
+certificates cannot).
 
 Skips, with the reason, when there is no Docker engine or compose v2 (``.ci/run``
 installs and starts them: ``docker/setup-engine.sh``).
@@ -34,6 +37,7 @@ import re
 import shutil
 import socket
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -323,7 +327,8 @@ def test_compose_stack_flies_fails_safe_restarts_and_logs(image, tmp_path):
     assert compose.leftovers() == []
 
 
-def test_vehicle_and_companion_as_two_projects(image, tmp_path):
+@pytest.mark.parametrize("secure", [False, True], ids=["tcp", "mtls"])
+def test_vehicle_and_companion_as_two_projects(image, tmp_path, secure):
     gateway = docker0_address()
     if gateway is None:
         pytest.skip("no docker0 address to publish the vehicle's and companion's ports on")
@@ -332,12 +337,38 @@ def test_vehicle_and_companion_as_two_projects(image, tmp_path):
            "SKYLOOP_ZENOH_BIND": gateway, "SKYLOOP_MAVLINK_BIND": gateway,
            "SKYLOOP_COMPANION_HOST": "host.docker.internal",
            "SKYLOOP_VEHICLE_HOST": "host.docker.internal"}
-    vehicle = Compose(env, f"{PROJECT}-vehicle", ("compose.vehicle.yaml",))
-    companion = Compose(env, f"{PROJECT}-companion", ("compose.companion.yaml",))
+    files = {"vehicle": ("compose.vehicle.yaml",), "companion": ("compose.companion.yaml",)}
+    if secure:  # mutual TLS + the router's access control, from `skyloop certs`
+        if shutil.which("openssl") is None:
+            pytest.skip("skyloop certs needs the openssl command")
+        certs = tmp_path / "certs"
+        _run(sys.executable, "-m", "skyloop", "certs", "--out", str(certs), "--host", "router",
+             "--host", "host.docker.internal", "--nodes", "router", "sim", "perception",
+             "policy", "bridge", "record")
+        env["SKYLOOP_CERTS"] = str(certs)
+        files = {k: (*v, v[0].replace(".yaml", ".tls.yaml")) for k, v in files.items()}
+    vehicle = Compose(env, f"{PROJECT}-vehicle", files["vehicle"])
+    companion = Compose(env, f"{PROJECT}-companion", files["companion"])
     for c in (companion, vehicle):
         c("down", "-v", "--timeout", "5", check=False)
     try:
         vehicle("up", "-d", timeout=600)  # returns once the sim's dependencies are healthy
+        vehicle.wait(lambda: vehicle.health("sim") == "healthy", 180, "the vehicle publishing")
+        # what reaches the router from outside without this bus's certificates: nothing
+        for endpoint in ([f"tls/{gateway}:7447"] if secure else []) + \
+                ([f"tcp/{gateway}:7447"] if secure else []):
+            probe = _run(sys.executable, "-m", "skyloop.health", "--publishing", "status",
+                         "--timeout", "3", check=False, env={
+                             **os.environ, "SKYLOOP_ZENOH_MODE": "client",
+                             "SKYLOOP_ZENOH_CONNECT": endpoint, "ZENOH_CONFIG": ""})
+            assert probe.returncode == 1, (endpoint, probe.stdout, probe.stderr)
+        if not secure:  # the plain bus is open to whoever reaches the port
+            probe = _run(sys.executable, "-m", "skyloop.health", "--publishing", "status",
+                         "--timeout", "10", check=False, env={
+                             **os.environ, "SKYLOOP_ZENOH_MODE": "client",
+                             "SKYLOOP_ZENOH_CONNECT": f"tcp/{gateway}:7447",
+                             "ZENOH_CONFIG": ""})
+            assert probe.returncode == 0, (probe.stdout, probe.stderr)
         companion("up", "-d", timeout=600)
         vehicle.wait(lambda: vehicle.state("sim").get("Status") == "exited", 300,
                      "the sim to finish its episodes (flown from the companion)", poll=2.0)
