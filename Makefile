@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed
 # Exact torch pin: a looser range pulls a multi-GB CUDA build on a CPU-only machine.
 TORCH  := torch==2.13.0
 
-.PHONY: demo test bench lint clean
+.PHONY: demo test test-docker bench lint clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m pytest --durations=25
+
+# The stack in containers (tests/test_docker_compose.py: builds the image, minutes on a
+# fresh machine); needs a Docker engine and compose v2 (docker/setup-engine.sh), else skips.
+test-docker: $(STAMP)
+	$(PY) -m pytest -m docker --durations=10
 
 bench: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]"

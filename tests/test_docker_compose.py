@@ -50,7 +50,7 @@ from pymavlink import mavutil  # noqa: E402
 from bus.log_reader import read_episodes  # noqa: E402
 from mavlink_bridge.modes import AutoSubMode, MainMode, decode_custom_mode  # noqa: E402
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.docker]  # make test-docker
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCKER = ROOT / "docker"
