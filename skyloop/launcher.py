@@ -136,6 +136,7 @@ class Child:
     name: str
     proc: subprocess.Popen
     lines: collections.deque = field(default_factory=lambda: collections.deque(maxlen=50))
+    reader: threading.Thread | None = None  # routes its output; done at end of output
 
     @property
     def last_line(self) -> str:
@@ -173,7 +174,8 @@ class Graph:
             preexec_fn=_pdeathsig)
         child = Child(name, proc)
         self.children.append(child)
-        threading.Thread(target=self._read, args=(child,), daemon=True).start()
+        child.reader = threading.Thread(target=self._read, args=(child,), daemon=True)
+        child.reader.start()
         print(STARTED_LINE.format(name=name, pid=proc.pid), flush=True)
         return child
 
@@ -393,6 +395,8 @@ def run_up(args: argparse.Namespace) -> int:
             time.sleep(0.05)
         graph.cpu_since_go()  # before the others stop, the sim not reaped yet
         sim.proc.poll()
+        if sim.reader is not None:  # its last lines (the summary) read before judging it
+            sim.reader.join(5.0)
         if sim.proc.returncode != 0 or graph.summary is None:
             return _died(graph, sim)
         graph.stop(keep="viz" if args.viz == "web" else None)
