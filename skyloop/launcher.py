@@ -296,7 +296,7 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
                    *(["--hold"] if args.goals == "gcs" else []),
                    *([] if args.policy in (None, "shipped") else ["--policy", args.policy])],
         "viz": ["viz", *v, "--viz", args.viz or "spawn", "--scan-every",
-                str(args.viz_scan_every)],
+                str(args.viz_scan_every), "--scenario", args.scenario],
         "sim": ["sim", *v, *clock, "--scenario", args.scenario, "--episodes",
                 str(args.episodes), "--seed", str(args.seed), "--max-steps", str(args.max_steps),
                 "--lockstep-timeout", str(args.lockstep_timeout),

@@ -232,6 +232,18 @@ class RunView:
                 self.rec.log("events", self.rr.TextLog(str(text), level="INFO"))
 
     # -- the world
+    def warm(self, scenario: str) -> None:
+        """Build the world of ``scenario`` ahead of its first episode (a family or a
+        mixture: its template, not drawn, which warms the compiled kernels)."""
+        from sitl.families import WorldSource
+        from sitl.world import World, load_scenario
+
+        source = WorldSource.parse(scenario)
+        if source.fixed:
+            self._world(scenario)
+        else:
+            World(load_scenario(source.template()))
+
     def _world(self, scenario: str) -> None:
         from sitl.world import World, load_scenario
 
@@ -447,6 +459,7 @@ class LiveFeed:
             lambda s: self._put("lidar/points", s.payload.to_bytes()))
         self._zenoh = zenoh
         self._stop = threading.Event()
+        self._drain_until = 0.0
         self._thread = threading.Thread(target=self._run, name="skyloop-viz", daemon=True)
         self._thread.start()
 
@@ -460,7 +473,8 @@ class LiveFeed:
         from bus.keys import msgtype
         from bus.messages import decode
 
-        while not self._stop.is_set():
+        while not (self._stop.is_set()
+                   and (self._q.empty() or time.monotonic() > self._drain_until)):
             try:
                 name, msg = self._q.get(timeout=0.1)
             except queue.Empty:
@@ -474,25 +488,32 @@ class LiveFeed:
             except Exception:  # noqa: BLE001 - one bad message must not stop the view
                 log.exception("viz: drawing %s failed", name)
 
-    def close(self) -> None:
-        """Undeclare every subscriber, then stop the drawing thread."""
+    def close(self, drain_s: float = 2.0) -> None:
+        """Undeclare every subscriber, draw what is queued (for at most ``drain_s``; the
+        rest counts as dropped), then stop the drawing thread."""
         for s in self._subs:
             s.close()
         self._scan_sub.undeclare()
+        self._drain_until = time.monotonic() + drain_s
         self._stop.set()
-        self._thread.join(5.0)
+        self._thread.join(drain_s + 3.0)
+        self.dropped += self._q.qsize()
 
 
 def run_live(vehicle: str, target: Target, stop: threading.Event, *,
              session_config: Any = None, scan_every: int = 5, web_port: int = 9090,
-             grpc_port: int = 9876) -> dict[str, int]:
+             grpc_port: int = 9876, scenario: str | None = None) -> dict[str, int]:
     """``skyloop viz``: draw ``vehicle``'s run from the bus until ``stop``; declares the
-    readiness token ``viz`` once subscribed. Returns counters."""
+    readiness token ``viz`` once subscribed, after building ``scenario``'s world (a
+    world built at the first episode's start would hold the drawing up for seconds on
+    a loaded machine, while a short run flies on). Returns counters."""
     from bus.node import Bus
 
     rec, url = open_recording(target, web_port=web_port, grpc_port=grpc_port,
                               recording_name=f"skyloop {vehicle} live")
     view = RunView(rec, scan_every=scan_every)
+    if scenario:
+        view.warm(scenario)
     bus = Bus.open(session_config)
     try:
         feed = LiveFeed(bus, vehicle, view)
@@ -590,7 +611,8 @@ def cmd_viz(args: Any) -> int:
     stop_on_sigterm()
     cfg = SessionConfig.from_flags(args.mode, args.connect, args.listen, args.zenoh_config)
     c = run_live(args.vehicle, args.viz, threading.Event(), session_config=cfg,
-                 scan_every=args.scan_every, web_port=args.web_port, grpc_port=args.grpc_port)
+                 scan_every=args.scan_every, web_port=args.web_port, grpc_port=args.grpc_port,
+                 scenario=args.scenario)
     print(f"viz: drew {c['messages']} messages, {c['scans_drawn']} scans; dropped "
           f"{c['dropped']}", flush=True)
     return 0
@@ -607,5 +629,8 @@ def add_viewer_commands(sub: Any) -> None:
     p.set_defaults(func=cmd_view)
     p = sub.add_parser("viz", help="live 3D view node (Rerun) of one vehicle on the bus")
     add_bus_flags(p)
+    p.add_argument("--scenario", default=None,
+                   help="build this scenario's world before declaring ready (skyloop up "
+                        "passes its own; default: at the first episode)")
     _view_flags(p, "spawn")
     p.set_defaults(func=cmd_viz)
