@@ -366,6 +366,17 @@ def face_colours(values: np.ndarray) -> np.ndarray:
     return out
 
 
+def fan_triangles(faces: Sequence[Sequence[int]]) -> tuple[np.ndarray, np.ndarray]:
+    """Convex faces (vertex indices, in order) as a triangle fan each: triangles (T, 3)
+    and the face each one belongs to (T,)."""
+    tris, owner = [], []
+    for i, face in enumerate(faces):
+        for k in range(1, len(face) - 1):
+            tris.append((face[0], face[k], face[k + 1]))
+            owner.append(i)
+    return np.array(tris, np.int64).reshape(-1, 3), np.array(owner, np.int64)
+
+
 def icosahedron_markers(vertices: np.ndarray, faces: Sequence[Sequence[int]],
                         values: np.ndarray, radius: float, stamp_s: float,
                         edges: bool = True) -> Any:
@@ -375,17 +386,12 @@ def icosahedron_markers(vertices: np.ndarray, faces: Sequence[Sequence[int]],
     DELETE of them when every face is free, and (``edges``) the solid's 90 edges."""
     verts = np.asarray(vertices, np.float64) * float(radius)
     cols = face_colours(values)
-    tris, tri_cols = [], []
-    for i, face in enumerate(faces):
-        if cols[i, 3] > 0.0:
-            for k in range(1, len(face) - 1):
-                tris.append((face[0], face[k], face[k + 1]))
-                tri_cols.append(cols[i])
-    if tris:
-        tri = np.array(tris, np.int64).reshape(-1)
+    tris, owner = fan_triangles(faces)
+    hit = cols[owner, 3] > 0.0
+    if hit.any():
         out = [marker(ICOSAHEDRON, _Marker.TRIANGLE_LIST, stamp_s, FRAME_LIDAR,
-                      points=verts[tri], colors=np.repeat(tri_cols, 3, axis=0),
-                      frame_locked=True)]
+                      points=verts[tris[hit].reshape(-1)],
+                      colors=np.repeat(cols[owner[hit]], 3, axis=0), frame_locked=True)]
     else:
         out = [marker(ICOSAHEDRON, _Marker.TRIANGLE_LIST, stamp_s, FRAME_LIDAR,
                       frame_locked=True)]

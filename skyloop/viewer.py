@@ -30,7 +30,6 @@ newest scan when the viewer falls behind (counted).
 from __future__ import annotations
 
 import logging
-import math
 import queue
 import threading
 import time
@@ -123,51 +122,15 @@ def blueprint(extent: tuple[float, float, float, float] | None = None) -> Any:
 
 
 # ------------------------------------------------------------------ pure helpers
-def height_colors(z: np.ndarray) -> np.ndarray:
-    """(V,) heights -> (V, 3) uint8 colours: low green, mid ochre, high grey-white."""
-    lo, hi = float(np.min(z)), float(np.max(z))
-    t = (z - lo) / max(hi - lo, 1e-6)
-    stops = np.array([[62, 120, 60], [150, 140, 80], [120, 100, 80], [235, 235, 230]], float)
-    pos = np.linspace(0.0, 1.0, len(stops))
-    return np.stack([np.interp(t, pos, stops[:, c]) for c in range(3)], 1).astype(np.uint8)
-
-
 def range_colors(points: np.ndarray, max_range: float = 30.0) -> np.ndarray:
     """(N, 3) points in the sensor frame -> (N, 3) uint8: near red, far blue (by range)."""
     t = np.clip(np.linalg.norm(points, axis=1) / max_range, 0.0, 1.0)
     return np.stack([255 * (1 - t), 80 + 100 * np.sin(np.pi * t), 255 * t], 1).astype(np.uint8)
 
 
-def face_colors(values: np.ndarray) -> np.ndarray:
-    """(32,) face values (0 = nothing in the face) -> (32, 4) RGBA: free faces faint
-    green, occupied faces red, the more opaque the larger the value."""
-    v = np.clip(np.asarray(values, float), 0.0, 1.0)
-    free = v <= 0.0
-    rgba = np.empty((len(v), 4), np.uint8)
-    rgba[free] = (90, 200, 120, 40)
-    rgba[~free, :3] = (230, 60, 40)
-    rgba[~free, 3] = (120 + 135 * v[~free]).astype(np.uint8)
-    return rgba
-
-
-def face_mesh(vertices: np.ndarray, faces: list[list[int]]) -> tuple[np.ndarray, np.ndarray,
-                                                                       np.ndarray]:
-    """The truncated icosahedron as triangles with unshared vertices (so each face can
-    have its own colour): vertices (3T, 3), triangles (T, 3), and each triangle's face."""
-    tris, owner = [], []
-    for i, f in enumerate(faces):
-        for k in range(1, len(f) - 1):  # a fan over the convex face
-            tris.append((f[0], f[k], f[k + 1]))
-            owner.append(i)
-    corner = np.asarray(tris).reshape(-1)
-    return (vertices[corner].astype(np.float32), np.arange(len(corner)).reshape(-1, 3),
-            np.asarray(owner))
-
-
-def yaw_rotate(v: np.ndarray, yaw: float) -> np.ndarray:
-    """A body-horizontal (FLU at the heading) vector in world ENU: rotate x, y by yaw."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+def rgba8(colours: np.ndarray) -> np.ndarray:
+    """Float RGB(A) in [0, 1] (``bus.ros_view``'s colours) -> uint8 for Rerun."""
+    return np.round(np.clip(np.asarray(colours, float), 0.0, 1.0) * 255).astype(np.uint8)
 
 
 # ------------------------------------------------------------------ the view
@@ -185,19 +148,24 @@ class RunView:
     def __init__(self, rec: Any, *, scan_every: int = 5) -> None:
         import rerun as rr
 
-        from perception.icosahedron import TruncatedIcosahedron
+        from bus.ros_scene import SitlScene
+        from bus.ros_view import fan_triangles
         from policy.rewards import RewardConfig
 
         self.rr, self.rec, self.scan_every = rr, rec, max(1, int(scan_every))
         self.step = 0
         self.sim_time = 0.0
         self.scenario: str | None = None
-        self.world: Any = None
+        self.scene = SitlScene()  # the geometry the log's 3D view shows too
+        self.aircraft: Any = None  # t -> (K, 8) boxes of the world's aircraft, or None
         self.ep = _Episode()
         self.pose: tuple[np.ndarray, np.ndarray] | None = None  # position, quaternion xyzw
         self.reward_config = RewardConfig()
         self.ico_radius: float | None = None
-        self._ico = TruncatedIcosahedron
+        self._ico_verts, ico_faces = self.scene.icosahedron()  # circumradius 1
+        self._ico_tris, self._ico_owner = fan_triangles(ico_faces)
+        self._ico_edges = np.array(sorted({(min(a, b), max(a, b)) for f in ico_faces
+                                           for a, b in zip(f, [*f[1:], f[0]], strict=True)}))
         self.counts = {"scans_drawn": 0, "messages": 0}
         rec.send_blueprint(blueprint())
         self._draw_vehicle()
@@ -236,39 +204,38 @@ class RunView:
         """Build the world of ``scenario`` ahead of its first episode (a family or a
         mixture: its template, not drawn, which warms the compiled kernels)."""
         from sitl.families import WorldSource
-        from sitl.world import World, load_scenario
 
         source = WorldSource.parse(scenario)
         if source.fixed:
             self._world(scenario)
         else:
-            World(load_scenario(source.template()))
+            self.scene.world(source.template())
 
     def _world(self, scenario: str) -> None:
-        from sitl.world import World, load_scenario
+        """The static world of ``scenario`` (``bus.ros_scene.SitlScene``: the terrain
+        decimated, the solids by kind) in ``bus.ros_view``'s colours."""
+        from bus import ros_view
 
         rr = self.rr
-        self.world = World(load_scenario(scenario))
+        geo = self.scene.world(scenario)
+        self.aircraft = self.scene.aircraft(scenario)
         self.scenario = scenario
-        self.rec.send_blueprint(blueprint(self.world.extent))
-        verts, tris = self.world.terrain.mesh()
-        self.rec.log("world/terrain", rr.Mesh3D(vertex_positions=verts, triangle_indices=tris,
-                                                vertex_colors=height_colors(verts[:, 2])),
-                     static=True)
-        parts = [(s.vertices, s.triangles, s.kind) for s in self.world.solids]
-        if parts:
-            colour = {"building": (150, 150, 160), "trunk": (110, 80, 50),
-                      "crown": (40, 120, 50)}
-            offset, vs, ts, cs = 0, [], [], []
-            for v, t, kind in parts:
-                vs.append(v)
-                ts.append(t + offset)
-                cs.append(np.tile(colour.get(kind, (160, 160, 160)), (len(v), 1)))
-                offset += len(v)
+        v = geo.terrain.vertices
+        self.rec.send_blueprint(blueprint((v[:, 0].min(), v[:, 0].max(),
+                                           v[:, 1].min(), v[:, 1].max())))
+        self.rec.log("world/terrain", rr.Mesh3D(
+            vertex_positions=v, triangle_indices=geo.terrain.triangles,
+            vertex_colors=rgba8(ros_view.terrain_colours(v[:, 2]))), static=True)
+        solids = [(mesh, colour) for mesh, colour in ((geo.buildings, ros_view.BUILDING),
+                                                     (geo.trunks, ros_view.TRUNK),
+                                                     (geo.crowns, ros_view.CROWN))
+                  if len(mesh.triangles)]
+        if solids:
+            mesh = ros_view.Mesh.merge([(m.vertices, m.triangles) for m, _ in solids])
+            colours = np.vstack([np.tile(c, (len(m.vertices), 1)) for m, c in solids])
             self.rec.log("world/obstacles", rr.Mesh3D(
-                vertex_positions=np.vstack(vs).astype(np.float32),
-                triangle_indices=np.vstack(ts), vertex_colors=np.vstack(cs).astype(np.uint8)),
-                static=True)
+                vertex_positions=mesh.vertices, triangle_indices=mesh.triangles,
+                vertex_colors=rgba8(colours)), static=True)
         else:
             self.rec.log("world/obstacles", rr.Clear(recursive=False), static=True)
 
@@ -324,8 +291,8 @@ class RunView:
         if self.ep.goal is not None:
             d = float(np.linalg.norm(self.ep.goal - p))
             self.rec.log("plots/distance_to_goal", rr.Scalars(d))
-        if self.world is not None and len(self.world.fleet):
-            b = self.world.aircraft_boxes(self.sim_time)
+        if self.aircraft is not None:
+            b = self.aircraft(self.sim_time)
             yaw = np.arctan2(b[:, 7], b[:, 6])
             self.rec.log("world/aircraft", rr.Boxes3D(
                 centers=b[:, :3], half_sizes=b[:, 3:6], fill_mode="solid",
@@ -347,6 +314,7 @@ class RunView:
         self.counts["scans_drawn"] += 1
 
     def _observation(self, msg: Any) -> None:
+        from bus import ros_view
         from bus.messages import observation_scaling
         from perception.observation import config_from_scaling, goal_terms
         from policy.rewards import base_reward
@@ -359,20 +327,19 @@ class RunView:
         radius = config.radius if config else 4.0
         if radius != self.ico_radius:  # the solid around the vehicle, at its radius
             self.ico_radius = radius
-            ico = self._ico(radius)
-            self._face_verts, self._face_tris, self._face_owner = face_mesh(ico.vertices,
-                                                                            ico.faces)
             self.rec.log("world/vehicle/solid", rr.LineStrips3D(
-                ico.vertices[ico.edges], colors=[[90, 200, 120]], radii=[0.01]))
-        # the faces with something in them, filled; the free ones are the wireframe
-        hit = np.flatnonzero(values[:32][self._face_owner] > 0.0)
+                self._ico_verts[self._ico_edges] * radius, colors=[[90, 200, 120]],
+                radii=[0.01]))
+        # the faces with something in them, filled (unshared corners: a colour a face);
+        # the free ones are the wireframe
+        colours = ros_view.face_colours(values[:32])
+        hit = np.flatnonzero(colours[self._ico_owner, 3] > 0.0)
         if len(hit):
-            corners = self._face_tris[hit].reshape(-1)
-            colours = face_colors(values[:32])[self._face_owner[hit]]
+            corners = self._ico_tris[hit].reshape(-1)
             self.rec.log("world/vehicle/faces", rr.Mesh3D(
-                vertex_positions=self._face_verts[corners],
+                vertex_positions=self._ico_verts[corners] * radius,
                 triangle_indices=np.arange(len(corners)).reshape(-1, 3),
-                vertex_colors=np.repeat(colours[:, :3], 3, axis=0)))
+                vertex_colors=rgba8(np.repeat(colours[self._ico_owner[hit], :3], 3, axis=0))))
         else:
             self.rec.log("world/vehicle/faces", rr.Clear(recursive=False))
         if config is None or self.pose is None or self.ep.goal is None:
@@ -386,13 +353,14 @@ class RunView:
 
     def _command(self, msg: Any) -> None:
         from bus.messages import FRAME_BODY, yaw_of
+        from sitl.episode import body_to_world
 
         if self.pose is None:
             return
         self._time(msg.header.stamp)
         v = np.array([msg.velocity.x, msg.velocity.y, msg.velocity.z])
         if msg.frame == FRAME_BODY:
-            v = yaw_rotate(v, yaw_of(self.pose[1]))
+            v = body_to_world(np.append(v, 0.0), yaw_of(self.pose[1]))[:3]
         self.rec.log("world/cmd", self.rr.Arrows3D(origins=[self.pose[0]], vectors=[v],
                                                    colors=[[250, 120, 0]]))
 

@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bus.ros_view import face_colours, fan_triangles
 from skyloop.launcher import free_port
-from skyloop.viewer import face_colors, face_mesh, parse_target
+from skyloop.viewer import parse_target
 
 ROOT = Path(__file__).resolve().parents[1]
 SKYLOOP = [sys.executable, "-m", "skyloop"]
@@ -63,19 +64,21 @@ def test_targets_parse_or_name_the_flag():
             parse_target(bad)
 
 
-def test_face_mesh_gives_each_face_its_triangles():
+def test_fan_triangles_give_each_face_its_triangles():
+    """The icosahedron's faces as the view fills them (bus.ros_view, shared with the
+    log's 3D view)."""
     from perception.icosahedron import TruncatedIcosahedron
 
     ico = TruncatedIcosahedron(4.0)
-    verts, tris, owner = face_mesh(ico.vertices, ico.faces)
+    tris, owner = fan_triangles(ico.faces)
     # 12 pentagons of 3 triangles, 20 hexagons of 4
-    assert tris.shape == (12 * 3 + 20 * 4, 3) and len(verts) == 3 * len(tris)
+    assert tris.shape == (12 * 3 + 20 * 4, 3)
     assert np.bincount(owner).tolist() == [3] * 12 + [4] * 20
-    centroid = verts[tris].mean(axis=1)  # every triangle lies on its face's plane
+    centroid = ico.vertices[tris].mean(axis=1)  # every triangle lies on its face's plane
     assert np.allclose(np.einsum("ij,ij->i", centroid, ico.normals[owner]),
                        ico.offsets[owner], atol=1e-4)
-    c = face_colors(np.array([0.0, 0.5, 1.0]))
-    assert c[0, 3] < c[1, 3] < c[2, 3] and c[1, 0] > c[1, 1]  # free faint, hit red
+    c = face_colours(np.array([0.0, 0.5, 1.0]))
+    assert c[0, 3] == 0.0 < c[1, 3] and c[1, 1] > c[2, 1]  # free unseen, nearer redder
 
 
 def test_bad_logs_get_one_line_errors(tmp_path):
@@ -114,8 +117,8 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 def terrain_share(png: Path) -> float:
     """Share of the 3D view (the left three quarters of the page, below the top bar) in
-    the terrain's colours: green valleys to ochre and brown slopes (skyloop.viewer's
-    height_colors), not the viewer's white, grey or blue."""
+    the terrain's colours: green valleys to tan slopes (the viewer's
+    bus.ros_view.terrain_colours), not the viewer's white, grey or blue."""
     import matplotlib.image as mpimg
 
     img = (mpimg.imread(png)[..., :3] * 255).astype(int)
