@@ -95,8 +95,7 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
     from sitl.families import WorldSource, eval_worlds
 
     source = WorldSource.parse(scenario)
-    if worlds is not None and (source.fixed or len(source.families) != 1
-                               or not scenario.startswith("family:")):
+    if worlds is not None and not scenario.startswith("family:"):  # one family, parsed
         raise ValueError(f"--worlds needs --scenario family:NAME, got {scenario!r}")
     if worlds is None and not source.fixed:
         raise ValueError(f"--scenario {scenario}: evaluation flies held-out worlds: give "
