@@ -5,7 +5,8 @@ episodes) plus ``metadata.yaml`` (rosbag2 version 5, the
 format ROS 2 Humble writes, storage ``mcap``), so ``ros2 bag info/play <run>``,
 ``rosbags`` (the directory or the ``.mcap`` itself), Foxglove and the ``mcap`` CLI all
 open it. MCAP profile ``ros2``, schema encoding ``ros2msg`` (the full concatenated
-``.msg`` text), message encoding ``cdr``, zero or zstd/lz4 chunk compression.
+``.msg`` text), message encoding ``cdr``, chunks compressed with zstd (the default; lz4
+or none on request: ``compression``).
 
 Crash safety (a SIGKILL loses at most the episode in progress):
 
@@ -97,11 +98,13 @@ class EpisodeLogWriter:
     episodes have ended in a file and none is open, the file is finished (summary,
     footer, ``metadata.yaml`` rewritten) and the next one begins, as rosbag2's
     ``max_bag_duration`` splits a bag: a file never splits an episode, and a writer that
-    dies loses at most its open file's tail. Not thread-safe: one writer thread.
+    dies loses at most its open file's tail. ``compression``: of each MCAP chunk,
+    ``"zstd"`` (default), ``"lz4"`` or ``"none"``; :mod:`bus.log_reader`, ``rosbags``
+    and ``mcap``'s reader read all three (tested). Not thread-safe: one writer thread.
     """
 
     def __init__(self, out_dir: str | os.PathLike[str], run_name: str | None = None, *,
-                 chunk_size: int = 2 * 1024 * 1024, compression: str = "none",
+                 chunk_size: int = 2 * 1024 * 1024, compression: str = "zstd",
                  fsync: bool = False, metadata: dict[str, str] | None = None,
                  split_episodes: int = 0) -> None:
         run_name = run_name or default_run_name()

@@ -356,7 +356,8 @@ def run_up(args: argparse.Namespace) -> int:
         if args.log_dir:
             graph.start("record", ["record", "--out", str(args.log_dir), "--vehicle",
                                    args.vehicle, "--split-episodes",
-                                   str(args.log_split_episodes)])
+                                   str(args.log_split_episodes), "--compression",
+                                   args.log_compression])
         if args.viz:
             graph.start("viz", nodes["viz"])
         for name in ("perception", "bridge"):
@@ -539,6 +540,9 @@ def add_up_parser(sub: Any, func: Any) -> None:
     p.add_argument("--log-dir", default=None, help="record the run (MCAP) under this dir")
     p.add_argument("--log-split-episodes", type=nonnegative_int, default=0, metavar="N",
                    help="with --log-dir: a new MCAP file every N episodes (default 0: one)")
+    p.add_argument("--log-compression", choices=("zstd", "lz4", "none"), default="zstd",
+                   help="with --log-dir: MCAP chunk compression (default: zstd, about 40%% "
+                        "smaller than none; see skyloop record --help)")
     p.add_argument("--json", default=None, help="write the summary here")
     p.add_argument("--vehicle", default="uav1")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",

@@ -15,13 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from loopback import free_port, wait_for
+from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
 from bus import keys
 from bus import messages as m
 from bus.log import EpisodeLogWriter, read_episodes
 from bus.node import Bus
-from bus.record import Recorder, main, run_record
+from bus.record import Recorder, build_parser, main, run_record
 from bus.session import SessionConfig, open_session
 
 REPO = Path(__file__).resolve().parents[1]
@@ -181,7 +182,7 @@ def test_run_record_until_stopped(tmp_path):
     cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
     stop, ready, result = threading.Event(), threading.Event(), []
     thread = threading.Thread(target=lambda: result.append(run_record(
-        tmp_path, cfg, stop, vehicle="uav1", run_name="rr", compression="zstd", ready=ready)))
+        tmp_path, cfg, stop, vehicle="uav1", run_name="rr", ready=ready)))
     thread.start()
     try:
         assert ready.wait(10.0)
@@ -200,6 +201,9 @@ def test_run_record_until_stopped(tmp_path):
     (res,) = result
     assert res.path == tmp_path / "rr" and (res.path / "metadata.yaml").exists()
     assert res.counters["written"] == sum(run.sent.values()) and res.counters["dropped"] == 0
+    with open(res.path / "rr_0.mcap", "rb") as f:  # zstd chunks unless asked otherwise
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert chunks and {c.compression for c in chunks} == {"zstd"}
 
 
 def test_main_help(capsys):
@@ -208,6 +212,8 @@ def test_main_help(capsys):
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "--out" in out and "--vehicle" in out and "skyloop record" in out
+    assert build_parser().parse_args([]).compression == "zstd"
+    assert build_parser().parse_args(["--compression", "none"]).compression == "none"
 
 
 def test_sigkilled_recorder_loses_at_most_the_open_episode(tmp_path):

@@ -92,6 +92,23 @@ def test_opens_with_mcap_and_rosbags(tmp_path, compression):
         assert {t: i.msgcount for t, i in bag.topics.items()} == expected
 
 
+
+def test_default_chunks_are_zstd_and_read_back_exactly(tmp_path):
+    """The writer's default (what the recorder and `skyloop up --log-dir` write): zstd
+    chunks, which the episode reader reads back byte for byte."""
+    with EpisodeLogWriter(tmp_path, "default", chunk_size=64 * 1024) as w:
+        t = 1_000
+        for ep in range(2):
+            t = write_episode(w, ep, t)
+    with open(w.path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) >= 2 and {c.compression for c in chunks} == {"zstd"}
+    eps, rep = read_episodes(w.dir)
+    assert rep.clean and [(e.index, e.seen) for e in eps] == [(0, PER_EPISODE), (1, PER_EPISODE)]
+    clouds = eps[1].topic(keys.LIDAR_POINTS)
+    assert len(clouds) == STEPS
+    np.testing.assert_array_equal(m.points_from_pointcloud(clouds[-1].decode()), PTS + 1)
+
 def test_split_every_n_episodes_never_splits_an_episode(tmp_path):
     """``split_episodes=2``: 5 episodes in 3 files (2, 2, 1), each a finished MCAP of
     whole episodes; metadata.yaml lists the three and rosbags reads the directory as

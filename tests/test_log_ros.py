@@ -291,7 +291,8 @@ def test_world_worker_builds_worlds_in_a_process_of_its_own():
 def flight(tmp_path_factory):
     """``skyloop up`` on the dynamic scenario (aircraft crossing), scripted policy,
     3 short episodes (long enough for the recorder's worker to build the world on a
-    loaded machine), recorded; returns the run directory and the wall-clock window."""
+    loaded machine), recorded with lz4 chunks (not the default zstd: the flag reaches the
+    recorder); returns the run directory and the wall-clock window."""
     import socket
     import subprocess
     import sys
@@ -306,7 +307,7 @@ def flight(tmp_path_factory):
            "--api-port", str(udp[0]), "--api-local-port", str(udp[1]),
            "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3]),
            "--scenario", "dynamic", "--episodes", "3", "--max-steps", "60",
-           "--policy", "scripted", "--log-dir", str(out)]
+           "--policy", "scripted", "--log-dir", str(out), "--log-compression", "lz4"]
     t0 = time.time_ns()
     proc = subprocess.run(cmd, cwd=Path(__file__).resolve().parent.parent,
                           capture_output=True, text=True, timeout=300)
@@ -325,6 +326,24 @@ def flight_messages(flight):
     with AnyReader([flight[0]]) as reader:
         return [(c.topic, c.msgtype, t, reader.deserialize(raw, c.msgtype))
                 for c, t, raw in reader.messages()]
+
+
+def test_up_log_compression_reaches_the_recorder(flight):
+    """`skyloop up --log-compression lz4`: every chunk of the run is lz4; without the
+    flag the recorder is asked for zstd."""
+    import argparse
+
+    from mcap.reader import make_reader
+
+    from skyloop.launcher import add_up_parser
+
+    (path,) = flight[0].glob("*.mcap")
+    with open(path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert chunks and {c.compression for c in chunks} == {"lz4"}
+    parser = argparse.ArgumentParser()
+    add_up_parser(parser.add_subparsers(), None)
+    assert parser.parse_args(["up"]).log_compression == "zstd"
 
 
 def test_flight_log_topics_are_there_and_decode(flight_messages):
