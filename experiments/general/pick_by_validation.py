@@ -1,0 +1,114 @@
+"""Pick a mixture run's policy by validation worlds only (issue 14).
+
+A mixture run's last actor is not its best (experiments/general/README.md: seed 0 lost
+the open worlds after episode ~600), so every actor the run kept over training
+(``RUN/snapshots/actor-ep<N>.pt``, and ``RUN/actor.pt``, the last) flies
+``--episodes`` episodes on ``--worlds`` **validation** worlds of each family
+(``sitl.families.eval_worlds(..., validation=True)``: seeds from 2,147,483,648, disjoint
+from training and from the held-out worlds the final table uses).
+
+The pick: the actor with the largest worst margin over the issue's goals,
+``min_f(success_f - goal_f)`` (valley, forest, dynamic 0.90; city 0.85); ties go to the
+earlier actor. Results are appended to ``RUN/selection.jsonl`` as they come (a rerun
+skips what is there: resumable), the pick goes to ``RUN/selection.json`` and a figure of
+success per family over training to ``--plot``.
+
+    python experiments/general/pick_by_validation.py RUN_DIR [--episodes 60 --worlds 20] [--plot FIG]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+GOALS = {"valley": 0.90, "forest": 0.90, "city": 0.85, "dynamic": 0.90}
+
+
+def actors(run: Path) -> list[tuple[int, Path]]:
+    """(training episode, actor file) of every kept actor, oldest first."""
+    found = []
+    for path in (run / "snapshots").glob("actor-ep*.pt"):
+        match = re.fullmatch(r"actor-ep(\d+)\.pt", path.name)
+        if match:
+            found.append((int(match.group(1)), path))
+    last = run / "actor.pt"
+    episodes = sum(1 for _ in (run / "episodes.csv").open()) - 1
+    if last.is_file() and (run / "result.json").is_file() \
+            and episodes not in {e for e, _ in found}:
+        found.append((episodes, last))  # a finished run's final actor
+    return sorted(found)
+
+
+def margin(rates: dict[str, float]) -> float:
+    """The worst family's success minus its goal (>= 0: every goal met)."""
+    return min(rates[f] - GOALS[f] for f in GOALS)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run", type=Path)
+    p.add_argument("--episodes", type=int, default=60, help="per family and actor")
+    p.add_argument("--worlds", type=int, default=20, help="validation worlds per family")
+    p.add_argument("--plot", type=Path, default=None)
+    args = p.parse_args()
+
+    from policy.evaluate import evaluate
+
+    log = args.run / "selection.jsonl"
+    done = [json.loads(line) for line in log.open()] if log.is_file() else []
+    seen = {(d["episode"], d["family"]) for d in done}
+    for episode, path in actors(args.run):
+        for family in GOALS:
+            if (episode, family) in seen:
+                continue
+            s = evaluate(str(path), f"family:{family}", args.episodes, worlds=args.worlds,
+                         validation=True, progress=False)
+            row = {"episode": episode, "family": family, "actor": str(path),
+                   "success": s["success_rate"], "collision": s["collision_rate"],
+                   "timeout": s["timeout_rate"], "episodes": s["episodes"],
+                   "worlds": args.worlds}
+            done.append(row)
+            with log.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(f"ep {episode:5d} {family:8s} success {row['success']:.1%} "
+                  f"timeout {row['timeout']:.1%}", flush=True)
+
+    table: dict[int, dict[str, float]] = {}
+    for d in done:
+        table.setdefault(d["episode"], {})[d["family"]] = d["success"]
+    complete = {e: r for e, r in table.items() if set(r) == set(GOALS)}
+    if not complete:
+        raise SystemExit(f"{args.run}: no actor evaluated on every family yet")
+    best = max(sorted(complete), key=lambda e: margin(complete[e]))  # earliest on ties
+    actor = next(d["actor"] for d in done if d["episode"] == best)
+    pick = {"episode": best, "actor": actor, "validation_success": complete[best],
+            "margin": margin(complete[best]), "goals": GOALS,
+            "episodes_per_family": args.episodes, "worlds": args.worlds}
+    (args.run / "selection.json").write_text(json.dumps(pick, indent=2))
+    print(f"pick: episode {best} ({actor}), worst margin {pick['margin']:+.1%}: "
+          + ", ".join(f"{f} {v:.0%}" for f, v in complete[best].items()))
+    if args.plot:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 4))
+        for family in GOALS:
+            xs = sorted(e for e in table if family in table[e])
+            ax.plot(xs, [table[e][family] for e in xs], marker="o", ms=3, label=family)
+        ax.axvline(best, color="k", lw=0.8, ls="--", label=f"pick (episode {best})")
+        ax.set(title=f"{args.run.name}: validation worlds ({args.worlds} per family, "
+                     f"{args.episodes} episodes)", xlabel="training episode of the actor",
+               ylabel="success", ylim=(0, 1))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(args.plot, dpi=110)
+        print(f"wrote {args.plot}")
+
+
+if __name__ == "__main__":
+    main()
