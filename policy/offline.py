@@ -173,7 +173,10 @@ class TD3BC(TD3):
         return -lam * q.mean() + (pi - self._bc_action).pow(2).mean()
 
 
-def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: int = 10_000,
+UPDATES = 10_000  # TD3 updates from the logs (``skyloop train --from-logs --updates``)
+
+
+def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: int = UPDATES,
                     seed: int = 0, bc: bool = False, init_actor: Path | None = None) -> dict:
     """Rebuild transitions from logs, train TD3 (or TD3+BC), write ``out/actor.pt``."""
     torch.set_num_threads(1)

@@ -63,9 +63,11 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from functools import partial
 from pathlib import Path
+from typing import ClassVar, Literal
 
 import numpy as np
 import torch
+import tyro
 from tqdm import tqdm
 
 from bus.task import episode_outcome
@@ -75,6 +77,7 @@ from policy.env import UavNavEnv
 from policy.plots import CSV_NAME, plot_runs
 from policy.replay import ReplayBuffer
 from policy.rewards import GOAL_REWARDS, RewardConfig
+from policy.settings import ConfigError, check_at_least
 from policy.td3 import PRECISIONS, flush_denormals
 
 CHECKPOINT = "checkpoint.pt"
@@ -91,47 +94,89 @@ CSV_FIELDS = ["episode", "return", "steps", "outcome", "success_rate_500",
 WINDOW = 500  # success rate over the last 500 episodes (abr-method.md)
 
 
+Algo = Literal["td3", "ddpg"]  # the keys of policy.agents.ALGOS
+Reward = Literal["tr", "ngr", "egr", "abr"]  # policy.rewards.GOAL_REWARDS
+Precision = Literal["fp32", "bf16"]  # the keys of policy.td3.PRECISIONS
+
+
 @dataclass
 class TrainConfig:
-    algo: str = "td3"
-    reward: str = "abr"
+    """One training run. Each default here is the only one: ``skyloop train``'s options
+    are generated from these fields (``skyloop.train_cli``, with tyro), and grid files
+    set them by name (``skyloop.experiment.grid``)."""
+
+    algo: Algo = "td3"
+    """the agent"""
+    reward: Reward = "abr"
+    """the goal reward: TR, NGR, EGR or ABR (abr-method.md)"""
+    # sitl/families.py; --world-every keeps a drawn world for several episodes
     scenario: str = "valley"
+    """a world: valley, forest, city, dynamic, a file, NAME#SEED; or family:NAME, mix:A,B"""
     episodes: int = 5000
+    """episodes to train (in total, counting those before a --resume)"""
     seed: int = 0
-    start_steps: int = 10_000  # initial uniform-random steps [choice, abr-method.md]
+    """the run's seed (networks, exploration); episode i has seed * 1_000_003 + i"""
+    start_steps: int = 10_000
+    """initial uniformly random steps (abr-method.md: 10,000)"""
     buffer_size: int = 1_000_000
+    """replay buffer capacity in transitions"""
     checkpoint_every: int = 100
+    """write a checkpoint every N episodes (and at the end)"""
     lidar_max_range: float = 4.5
-    threads: int = 1  # torch threads of the learner
-    sync: bool = False  # the reproducible single-process loop instead of the parallel one
-    envs: int = 1  # envs stepped in turn (one collector)
-    max_lead: int = 8  # parallel: env steps the collector may run ahead of the updates
-    device: str = "cpu"  # the learner's networks: "cpu", "cuda", "cuda:1", ...
-    # the update's arithmetic (policy.td3): "fp32" or "bf16" (mixed precision: bfloat16
-    # matmuls, float32 weights and Adam; policy.td3.best_precision says if it pays here)
-    precision: str = "fp32"
-    env: str = ""  # a Gymnasium env id instead of a scenario (the paper's BipedalWalker)
-    world_every: int = 1  # family:/mix: scenarios: a new world every N episodes
-    goal_return: float = 0.0  # with env: the episodic return that counts as the goal
-    progress: bool = True  # the tqdm bar (off under Ray Tune, which reports for itself)
-    extra: dict = field(default_factory=dict)
+    """the simulated LiDAR's range, m (the observation needs points within 4 m)"""
+    threads: int = 1
+    """the learner's torch threads"""
+    sync: bool = False
+    """envs and learner in turn in one process: reproducible (else a collector process)"""
+    envs: int = 1
+    """envs stepped in turn by the collector"""
+    max_lead: int = 8
+    """parallel mode: env steps the collector may run ahead of the updates"""
+    device: str = "cpu"
+    """the learner's device: cpu, cuda, cuda:1, ..."""
+    # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32
+    # weights and Adam; policy.td3.best_precision says whether it pays on a machine
+    precision: Precision = "fp32"
+    """the update's arithmetic: fp32, or bf16 matmuls with float32 weights and Adam"""
+    env: str = ""
+    """a Gymnasium env id instead of --scenario, e.g. BipedalWalkerHardcore-v3"""
+    world_every: int = 1
+    """family:/mix: scenarios: a new world every N episodes"""
+    goal_return: float = 0.0
+    """with --env: the episodic return that counts as reaching the goal"""
+    # not flags: the tqdm bar (off under Ray Tune, which reports for itself), and
+    # free-form entries recorded in the run's config.json
+    progress: tyro.conf.Suppress[bool] = True
+    extra: tyro.conf.Suppress[dict] = field(default_factory=dict)
+
+    # the least value of each count; a smaller one is refused on construction
+    AT_LEAST: ClassVar[dict[str, int]] = {
+        "episodes": 1, "start_steps": 0, "buffer_size": 1, "checkpoint_every": 1,
+        "threads": 1, "envs": 1, "max_lead": 1, "world_every": 1}
+
+    def __post_init__(self) -> None:
+        self.check()
+
+    def check(self) -> None:
+        """The cheap checks: counts in range, choices among the known ones. Raises
+        ``ConfigError`` naming the flag; runs on construction, so a bad value never
+        gets as far as starting a run."""
+        check_at_least(self, self.AT_LEAST)
+        if self.algo not in ALGOS:
+            raise ConfigError("algo", f"unknown algorithm {self.algo!r}; choose from "
+                                      f"{sorted(ALGOS)}")
+        if self.reward not in GOAL_REWARDS:
+            raise ConfigError("reward", f"unknown reward {self.reward!r}; choose from "
+                                        f"{sorted(GOAL_REWARDS)}")
+        if self.precision not in PRECISIONS:
+            raise ConfigError("precision", f"must be one of {sorted(PRECISIONS)}, "
+                                           f"got {self.precision!r}")
 
     def validate(self) -> None:
+        """``check``, then what costs more: the device, the scenario or env id."""
         from sitl.families import check_scenario  # ScenarioError naming the scenario
 
-        if self.algo not in ALGOS:
-            raise ValueError(f"unknown algorithm {self.algo!r}; choose from {sorted(ALGOS)}")
-        if self.reward not in GOAL_REWARDS:
-            raise ValueError(f"unknown reward {self.reward!r}; choose from {sorted(GOAL_REWARDS)}")
-        if self.episodes < 1:
-            raise ValueError(f"--episodes must be >= 1, got {self.episodes}")
-        if self.envs < 1:
-            raise ValueError(f"--envs must be >= 1, got {self.envs}")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"--precision must be one of {sorted(PRECISIONS)}, "
-                             f"got {self.precision!r}")
-        if self.max_lead < 1:
-            raise ValueError(f"--max-lead must be >= 1, got {self.max_lead}")
+        self.check()  # the fields may have been changed since construction
         try:
             torch.empty(0, device=self.device)
         except (RuntimeError, AssertionError) as exc:
@@ -142,8 +187,6 @@ class TrainConfig:
             check_env_id(self.env)
         else:
             check_scenario(self.scenario)
-        if self.world_every < 1:
-            raise ValueError(f"--world-every must be >= 1, got {self.world_every}")
 
     @property
     def task(self) -> str:

@@ -10,6 +10,8 @@ from pathlib import Path
 
 from skyloop.argtypes import nonnegative_int, positive_int
 
+EVAL_HELP = "evaluate a policy: success/collision/timeout rates, 95% CI"
+
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from skyloop.demo import run_demo
@@ -38,26 +40,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    if args.from_logs:
-        from policy.offline import train_from_logs
+    from skyloop.train_cli import main as train_main
 
-        summary = train_from_logs([Path(p) for p in args.from_logs], Path(args.out),
-                                  reward=args.reward, updates=args.updates, seed=args.seed,
-                                  bc=args.bc, init_actor=args.init_actor)
-        print(json.dumps(summary, indent=2))
-        return 0
-    from policy.train import TrainConfig, Trainer
-
-    config = TrainConfig(algo=args.algo, reward=args.reward, scenario=args.scenario,
-                         episodes=args.episodes, seed=args.seed,
-                         checkpoint_every=args.checkpoint_every, start_steps=args.start_steps,
-                         threads=args.threads, sync=args.sync, envs=args.envs,
-                         max_lead=args.max_lead, device=args.device, env=args.env or "",
-                         goal_return=args.goal_return, precision=args.precision,
-                         world_every=args.world_every)
-    summary = Trainer(config, Path(args.out)).run(resume=args.resume)
-    print(json.dumps(summary, indent=2))
-    return 0
+    return train_main(args.rest)
 
 
 def _cmd_log_repair(args: argparse.Namespace) -> int:
@@ -72,11 +57,12 @@ def _cmd_log_repair(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from policy.evaluate import evaluate, format_summary
+    from policy.evaluate import EvalConfig, evaluate, format_summary
+    from skyloop.dataclass_cli import parse
 
-    summary = evaluate(args.policy, args.scenario, args.episodes, args.seed,
-                       Path(args.json) if args.json else None, worlds=args.worlds,
-                       validation=args.validation)
+    c = parse(EvalConfig, args.rest, prog="skyloop eval", description=EVAL_HELP)
+    summary = evaluate(c.policy, c.scenario, c.episodes, c.seed, c.json_path,
+                       worlds=c.worlds, validation=c.validation)
     print(format_summary(summary))
     return 0
 
@@ -172,64 +158,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "run, named <run>-recovered)")
     r.set_defaults(func=_cmd_log_repair)
 
-    p = sub.add_parser("train", help="train TD3/DDPG with a goal reward in the in-process env")
-    p.add_argument("--algo", default="td3", help="td3 or ddpg")
-    p.add_argument("--reward", default="abr", help="tr, ngr, egr or abr")
-    p.add_argument("--scenario", default="valley",
-                   help="a world (valley, forest, city, dynamic, a file, NAME#SEED), or worlds "
-                        "drawn per episode: family:NAME, mix:A,B[,...] or mix:A=2,B=1 "
-                        "(sitl/families.py; default: valley)")
-    p.add_argument("--world-every", type=positive_int, default=1, metavar="N",
-                   help="family:/mix: scenarios: a new world every N episodes (default: 1)")
-    p.add_argument("--episodes", type=positive_int, default=5000)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True, help="run directory (CSV, TensorBoard, checkpoints)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument("--checkpoint-every", type=positive_int, default=100, metavar="EPISODES")
-    p.add_argument("--start-steps", type=nonnegative_int, default=10_000,
-                   help="initial uniformly random steps (abr-method.md: 10,000)")
-    p.add_argument("--threads", type=positive_int, default=1, help="the learner's torch threads")
-    p.add_argument("--sync", action="store_true",
-                   help="envs and learner take turns in one process: bit-reproducible with "
-                   "a seed (default: a collector process beside the learner, faster)")
-    p.add_argument("--envs", type=positive_int, default=1, metavar="N",
-                   help="envs stepped in turn by the collector (default: 1)")
-    p.add_argument("--max-lead", type=positive_int, default=8, metavar="STEPS",
-                   help="parallel mode: env steps the collector may run ahead of the "
-                   "updates (default: 8)")
-    p.add_argument("--device", default="cpu",
-                   help="the learner's device: cpu, cuda, cuda:1, ... (default: cpu)")
-    p.add_argument("--precision", default="fp32", choices=["fp32", "bf16"],
-                   help="the update's arithmetic (default: fp32); bf16 = mixed precision: "
-                   "bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32 weights and Adam")
-    p.add_argument("--env", metavar="GYM_ID",
-                   help="a Gymnasium env id instead of --scenario, e.g. "
-                   "BipedalWalkerHardcore-v3")
-    p.add_argument("--goal-return", type=float, default=0.0,
-                   help="with --env: the episodic return that counts as reaching the goal")
-    p.add_argument("--from-logs", nargs="+", metavar="LOG",
-                   help="learn offline from episode logs (MCAP files or run directories)")
-    p.add_argument("--updates", type=positive_int, default=10_000,
-                   help="with --from-logs: TD3 updates")
-    p.add_argument("--bc", action="store_true", help="with --from-logs: TD3+BC")
-    p.add_argument("--init-actor", help="with --from-logs: start from this actor file")
+    p = sub.add_parser("train", help="train TD3/DDPG with a goal reward in the in-process env "
+                       "(see 'train --help')", add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=_cmd_train)
 
-    p = sub.add_parser("eval", help="evaluate a policy: success/collision/timeout rates, 95%% CI")
-    p.add_argument("--policy", help="actor file (actor.pt or checkpoint dir's actor.pt), "
-                   "'scripted' for the straight-line baseline; default: the shipped policy")
-    p.add_argument("--scenario", default="valley",
-                   help="a world, or family:NAME with --worlds (default: valley)")
-    p.add_argument("--worlds", type=positive_int, default=None, metavar="N",
-                   help="with --scenario family:NAME: fly N held-out worlds of the family "
-                        "(world seeds never drawn in training: sitl/families.py), the "
-                        "episodes spread over them")
-    p.add_argument("--validation", action="store_true",
-                   help="with --worlds: the validation worlds instead (for choosing among "
-                        "trained policies; disjoint from training and held-out worlds)")
-    p.add_argument("--episodes", type=positive_int, default=500)
-    p.add_argument("--seed", type=int, default=1_000_000_000, help="first episode seed")
-    p.add_argument("--json", help="write the summary as JSON here")
+    p = sub.add_parser("eval", help=EVAL_HELP.replace("%", "%%") + " (see 'eval --help')",
+                       add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("plot", help="success/collision curves of one or more training runs")
@@ -253,13 +189,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Subcommands whose options are generated from config dataclasses with tyro
+# (skyloop.dataclass_cli): main() hands them the rest of the command line.
+GENERATED = {"train": _cmd_train, "eval": _cmd_eval}
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] in ("record", "router", "certs"):  # their own parsers take every flag
         from skyloop.stack_cli import passthrough
 
         return passthrough(argv[0], argv[1:])
-    args = build_parser().parse_args(argv)
+    if argv and argv[0] in GENERATED:  # their parsers are generated from dataclasses (tyro)
+        args = argparse.Namespace(command=argv[0], rest=argv[1:], func=GENERATED[argv[0]])
+    else:
+        args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM as skyloop.signals.Stopped

@@ -70,6 +70,8 @@ def test_a_grid_is_the_product_of_tasks_methods_and_seeds(tmp_path):
     ("start_steps = 50", "start_step = 50", "train.start_step: unknown option"),
     ("start_steps = 50", 'start_steps = "fifty"', "train.start_steps: expected int"),
     ("start_steps = 50", "seed = 3", "train.seed: set it at the top level"),
+    ("checkpoint_every = 1", "checkpoint_every = 0", "train.checkpoint_every: must be at least 1"),
+    ("start_steps = 50", "start_steps = -1", "train.start_steps: must be 0 or more, got -1"),
     ("episodes = 3", "episodes = 3\nepisodes = 5", "not valid TOML"),
 ])
 def test_a_bad_grid_names_the_file_and_the_field(tmp_path, old, new, field):

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -108,6 +112,19 @@ def test_train_from_logs_writes_an_actor(logged, tmp_path):
     assert (tmp_path / "run" / "actor.pt").stat().st_size > 100_000
     with pytest.raises(ValueError, match="no usable episodes"):
         train_from_logs([tmp_path / "nothing.mcap"], tmp_path / "run2", updates=1)
+
+
+def test_the_command_learns_from_logs(logged, tmp_path):
+    """``skyloop train --from-logs LOG... --out DIR``, with the run's --reward and --seed."""
+    path, _ = logged
+    out = tmp_path / "cli"
+    proc = subprocess.run([sys.executable, "-m", "skyloop", "train", "--from-logs", str(path),
+                           "--reward", "egr", "--updates", "3", "--bc", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    summary = json.loads((out / "from_logs.json").read_text())
+    assert (summary["reward"], summary["updates"], summary["algo"]) == ("egr", 3, "td3+bc")
+    assert summary["episodes_used"] == EPISODES and (out / "actor.pt").is_file()
 
 
 def test_a_file_that_is_not_a_log_is_named(logged, tmp_path):

@@ -214,4 +214,5 @@ def test_cli_reports_bad_arguments_without_traceback():
     out = subprocess.run([sys.executable, "-m", "skyloop", "train", "--algo", "ppo",
                           "--out", "unused"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 2
-    assert "unknown algorithm 'ppo'" in out.stderr and "Traceback" not in out.stderr
+    assert "argument --algo: invalid choice: 'ppo'" in out.stderr
+    assert "Traceback" not in out.stderr

@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from policy.settings import ConfigError
 from policy.train import TrainConfig
 
 __all__ = ["Grid", "GridError", "Trial", "load_grid"]
@@ -178,8 +179,13 @@ def load_grid(path: str | Path) -> Grid:
     for seed in seeds:  # seed-major: every method's first seed runs first
         for kind, task in tasks:
             for algo, reward in methods:
-                config = TrainConfig(algo=algo, reward=reward, seed=seed, episodes=episodes,
-                                     progress=False, **{kind: task}, **options)
+                try:
+                    config = TrainConfig(algo=algo, reward=reward, seed=seed,
+                                         episodes=episodes, progress=False, **{kind: task},
+                                         **options)
+                except ConfigError as exc:  # a value out of range, e.g. checkpoint_every = 0
+                    key = f"train.{exc.name}" if exc.name in options else exc.name
+                    raise GridError(f"{path}: {key}: {exc.problem}") from exc
                 slug = re.sub(r"[^A-Za-z0-9_.+#=-]", "_", task)  # mix:a,b -> mix_a_b
                 trials.append(Trial(f"{slug}-{algo}+{reward}-s{seed}", config))
     if len({t.name for t in trials}) != len(trials):
