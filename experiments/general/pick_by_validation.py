@@ -13,7 +13,8 @@ earlier actor. Results are appended to ``RUN/selection.jsonl`` as they come (a r
 skips what is there: resumable), the pick goes to ``RUN/selection.json`` and a figure of
 success per family over training to ``--plot``.
 
-    python experiments/general/pick_by_validation.py RUN_DIR [--episodes 60 --worlds 20] [--plot FIG]
+    python experiments/general/pick_by_validation.py RUN_DIR \
+        [--episodes 60 --worlds 20] [--plot FIG]
 """
 
 from __future__ import annotations
