@@ -32,7 +32,7 @@ import torch
 
 __all__ = ["Collector", "CollectorSpec", "SharedActor", "Transition", "collector_main"]
 
-INFO_KEYS = ("goal_reached", "collision", "reward_components")
+INFO_KEYS = ("goal_reached", "collision", "reward_components", "world")
 
 
 class Transition(NamedTuple):
@@ -45,7 +45,7 @@ class Transition(NamedTuple):
     next_state: np.ndarray
     terminated: bool
     truncated: bool
-    info: dict[str, Any]  # goal_reached, collision, reward_components
+    info: dict[str, Any]  # goal_reached, collision, reward_components, world
 
 
 class Collector:

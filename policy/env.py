@@ -227,4 +227,5 @@ class UavNavEnv(gymnasium.Env):
             "position": self.vehicle.truth.position.copy(),
             "goal": self.goal.copy(),
             "steps": self.steps,
+            "world": self.sim.world_name,  # the drawn world's NAME#SEED (sitl.families)
         }

@@ -83,6 +83,7 @@ from policy.td3 import PRECISIONS, flush_denormals
 CHECKPOINT = "checkpoint.pt"
 RESULT = "result.json"  # written last: the run is finished
 ACTOR = "actor.pt"
+SNAPSHOTS = "snapshots"  # --snapshot-every: actor-ep<N>.pt
 REWARD_TERMS = ("progress", "altitude", "heading", "velocity_heading", "collision")
 CSV_FIELDS = ["episode", "return", "steps", "outcome", "success_rate_500",
               "collision_rate_500", "total_steps",
@@ -90,7 +91,8 @@ CSV_FIELDS = ["episode", "return", "steps", "outcome", "success_rate_500",
               # bonus is return - base_return) and its eq. 3.5 terms; ABR's patterns in
               # H, how many of this episode's groups made a new one, and its groups
               "base_return", *(f"r_{k}" for k in REWARD_TERMS),
-              "abr_patterns", "abr_new_patterns", "abr_groups"]
+              "abr_patterns", "abr_new_patterns", "abr_groups",
+              "world"]  # the world the episode flew (family:/mix: scenarios draw one)
 WINDOW = 500  # success rate over the last 500 episodes (abr-method.md)
 
 
@@ -122,6 +124,9 @@ class TrainConfig:
     """replay buffer capacity in transitions"""
     checkpoint_every: int = 100
     """write a checkpoint every N episodes (and at the end)"""
+    snapshot_every: int = 0
+    """keep the actor every N episodes as OUT/snapshots/actor-ep<N>.pt, to pick one by
+    validation worlds afterwards (0: only the last, OUT/actor.pt)"""
     lidar_max_range: float = 4.5
     """the simulated LiDAR's range, m (the observation needs points within 4 m)"""
     threads: int = 1
@@ -152,7 +157,8 @@ class TrainConfig:
     # the least value of each count; a smaller one is refused on construction
     AT_LEAST: ClassVar[dict[str, int]] = {
         "episodes": 1, "start_steps": 0, "buffer_size": 1, "checkpoint_every": 1,
-        "threads": 1, "envs": 1, "max_lead": 1, "world_every": 1}
+        "threads": 1, "envs": 1, "max_lead": 1, "world_every": 1,
+        "snapshot_every": 0}
 
     def __post_init__(self) -> None:
         self.check()
@@ -339,6 +345,7 @@ class Trainer:
             "abr_patterns": len(getattr(self.goal_reward, "returns", [])),
             "abr_new_patterns": sum(g.new_pattern for g in groups),
             "abr_groups": len(groups),
+            "world": tr.info.get("world", ""),
         }
 
     def _collector(self, envs: list) -> Collector:
@@ -451,7 +458,9 @@ class Trainer:
                  f"({mode}, {self.config.precision})",
             disable=not self.config.progress,
         ) as bar:
-            rows = csv.DictWriter(f, CSV_FIELDS, extrasaction="ignore")
+            # a resumed run keeps its file's columns (a CSV begun before a column existed)
+            rows = csv.DictWriter(f, CSV_FIELDS if new_file else _csv_header(csv_path),
+                                  extrasaction="ignore")
             if new_file:
                 rows.writeheader()
             t0, steps0, wall0 = time.perf_counter(), self.total_steps, self.wall_s
@@ -471,6 +480,10 @@ class Trainer:
                     f.flush()
                     board.flush()  # what the checkpoint covers is on disk, as the CSV
                     self.save()
+                every = self.config.snapshot_every
+                if every and self.episode % every == 0:
+                    (self.out / SNAPSHOTS).mkdir(exist_ok=True)
+                    self.agent.save_actor(self.out / SNAPSHOTS / f"actor-ep{self.episode}.pt")
 
             try:
                 with flush_denormals():  # a large speed-up, see policy.td3
@@ -564,6 +577,12 @@ def finished(out: Path, episodes: int) -> bool:
         return json.loads((Path(out) / RESULT).read_text())["episodes"] >= episodes
     except (OSError, ValueError, KeyError, TypeError):
         return False
+
+
+def _csv_header(path: Path) -> list[str]:
+    """The column names of an existing CSV file."""
+    with path.open(newline="") as f:
+        return next(csv.reader(f), CSV_FIELDS)
 
 
 def _truncate_csv(path: Path, episodes: int) -> None:

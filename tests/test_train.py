@@ -216,3 +216,42 @@ def test_cli_reports_bad_arguments_without_traceback():
     assert out.returncode == 2
     assert "argument --algo: invalid choice: 'ppo'" in out.stderr
     assert "Traceback" not in out.stderr
+
+
+
+@pytest.mark.parametrize("sync", [True, False])
+def test_mixture_runs_log_each_world_and_keep_snapshots(tmp_path, sync):
+    """A mixture run's CSV names the world each episode flew: the one the episode's seed
+    draws (``WorldSource.draw`` is the first thing a reset draws); ``--snapshot-every``
+    keeps the actor of every N-th episode, loadable by ``skyloop eval``."""
+    import numpy as np
+
+    from policy.evaluate import ActorController
+    from policy.train import episode_seed
+    from sitl.families import WorldSource
+
+    spec = "mix:valley,forest,city,dynamic"
+    _train(tmp_path, 4, scenario=spec, snapshot_every=2, sync=sync)
+    with (tmp_path / "episodes.csv").open() as f:
+        worlds = [row["world"] for row in csv.DictReader(f)]
+    source = WorldSource.parse(spec)
+    assert worlds == [source.draw(np.random.default_rng(episode_seed(SMALL["seed"], i)))
+                      for i in range(4)]
+    kept = sorted(p.name for p in (tmp_path / "snapshots").iterdir())
+    assert kept == ["actor-ep2.pt", "actor-ep4.pt"]
+    ActorController(tmp_path / "snapshots" / "actor-ep2.pt")  # a whole actor file
+
+
+def test_a_run_resumed_with_an_older_csv_keeps_its_columns(tmp_path):
+    """Resuming a run whose CSV predates a column appends rows in the file's own columns
+    (no row wider than its header)."""
+    _train(tmp_path, 2)
+    path = tmp_path / "episodes.csv"
+    rows = list(csv.reader(path.open(newline="")))
+    old = [r[:-1] for r in rows]  # as written before the world column existed
+    with path.open("w", newline="") as f:
+        csv.writer(f).writerows(old)
+    _train(tmp_path, 4, resume=True)
+    rows = list(csv.reader(path.open(newline="")))
+    assert rows[0] == old[0] and len(rows) == 5
+    assert {len(r) for r in rows} == {len(old[0])}
