@@ -32,7 +32,10 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
   restarted sim), so the sim (commander, autopilot) and perception (``SKY_ICO_RADIUS``)
   fly with the values a ground station set; defaults nobody touched are not sent, so a
   node's own ``--param`` stands (``skyloop up`` gives the bridge the same ones).
-* **Telemetry**: LOCAL_POSITION_NED and ATTITUDE from the sim's estimated ``odom``.
+* **Telemetry**: LOCAL_POSITION_NED and ATTITUDE from the sim's estimated ``odom``, the
+  newest one when the loop runs: odometry comes every control step (hundreds a second in
+  lockstep), telemetry goes out at 10 Hz, so an odometry message wakes the loop only when
+  it has not run for ``ODOM_WAKE_S`` (20 ms; in lockstep each step's setpoint wakes it).
 * **Goals** (:mod:`mavlink_bridge.goals`): missions, DO_REPOSITION and
   SET_POSITION_TARGET_GLOBAL_INT become PoseStamped goals on ``goal``; progress
   (MISSION_CURRENT, MISSION_ITEM_REACHED) follows the sim's ``episode`` events.
@@ -64,6 +67,7 @@ from mavlink_bridge.interfaces import VehicleTelemetry, VelocityCommand
 from mavlink_bridge.vehicle_link import VehicleLink, VehicleLinkConfig
 
 log = logging.getLogger("skyloop.bridge")
+ODOM_WAKE_S = 0.02  # s: odometry wakes the loop only when it has not run for this long
 
 
 @dataclass(frozen=True)
@@ -170,8 +174,12 @@ class BridgeNode:
         self._q: queue.Queue[tuple[str, Any]] = queue.Queue()
         self._wake_r, self._wake_w = os.pipe()  # bus callbacks wake the select loop
         os.set_blocking(self._wake_r, False)
-        for topic in (keys.STATUS, keys.ODOM, keys.EPISODE):
+        for topic in (keys.STATUS, keys.EPISODE):
             bus.subscribe(topic, vehicle, lambda msg, t=topic: self._push(t, msg))
+        self._odom: Any = None  # the newest odometry
+        self._odom_taken: Any = None  # ... the loop has handled
+        self._spun = -math.inf  # monotonic time the loop last handled input
+        bus.subscribe(keys.ODOM, vehicle, self._offer_odom)
         # Goals from the ground station (mavlink_bridge.goals) -> the goal topic.
         goal_pub = bus.publisher(keys.GOAL, vehicle)
         self.goals = GoalService(self.link, lambda p: goal_pub.put(m.pose_stamped(p, 0.0)))
@@ -184,10 +192,21 @@ class BridgeNode:
 
     def _push(self, topic: str, msg: Any) -> None:
         self._q.put((topic, msg))
+        self._wake()
+
+    def _wake(self) -> None:
         try:
             os.write(self._wake_w, b"x")
         except OSError:  # closed, or the pipe is full (the loop is awake anyway)
             pass
+
+    def _offer_odom(self, msg: Any) -> None:
+        """Odometry comes every control step (300 a second in lockstep) and telemetry
+        goes out at 10 Hz: keep the newest, and wake the loop only when it has not run
+        for ``ODOM_WAKE_S`` (in lockstep each step's setpoint wakes it anyway)."""
+        self._odom = msg
+        if time.monotonic() - self._spun >= ODOM_WAKE_S:
+            self._wake()
 
     def clock(self) -> float:
         """The link's clock: wall seconds since the bridge started."""
@@ -249,10 +268,13 @@ class BridgeNode:
                 break
             if topic == keys.STATUS:
                 self._on_status(msg)
-            elif topic == keys.EPISODE:
-                self.goals.on_episode(msg, self.clock())
             else:
-                self._on_odom(msg)
+                self.goals.on_episode(msg, self.clock())
+        odom = self._odom
+        if odom is not self._odom_taken:
+            self._odom_taken = odom
+            self._on_odom(odom)
+        self._spun = time.monotonic()
         if self.vehicle_present:
             self.link.poll(self.clock())
 

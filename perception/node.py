@@ -48,6 +48,7 @@ class PerceptionNode:
         self.bus, self.vehicle = bus, vehicle
         self.config = config or ObservationConfig()
         self.ico = TruncatedIcosahedron(self.config.radius)
+        self._scaling: tuple[ObservationConfig, dict] | None = None  # (config, its fields)
         self.goals: dict[int, np.ndarray] = {}
         self.pending: dict[int, dict[str, Any]] = {}
         self.published = 0
@@ -145,8 +146,10 @@ class PerceptionNode:
         points = m.points_from_pointcloud(scan)
         obs, _, _, _ = observation_from_scan(points, self.ico, position, yaw_from_quat(*q),
                                              velocity, goal, self.config)
+        if self._scaling is None or self._scaling[0] is not self.config:
+            self._scaling = (self.config, scaling_fields(self.config))
         self.pub.put(m.observation(obs, stamp / 1e9, int(clock.episode), int(clock.step),
-                                   scaling=scaling_fields(self.config)))
+                                   scaling=self._scaling[1]))
         self.published += 1
 
     def close(self) -> None:

@@ -130,5 +130,10 @@ class EpisodeSim:
         truth = self.vehicle.truth
         return self.lidar.scan(truth.position, truth.rotation, self.time)
 
+    def scan_rings(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`scan` and each return's ring (``Lidar.scan_rings``)."""
+        truth = self.vehicle.truth
+        return self.lidar.scan_rings(truth.position, truth.rotation, self.time)
+
     def goal_distance(self) -> float:
         return float(np.linalg.norm(self.vehicle.truth.position - self.goal))

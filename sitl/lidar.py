@@ -188,12 +188,20 @@ class Lidar:
 
     def scan(self, position: np.ndarray, rotation: np.ndarray, t: float) -> np.ndarray:
         """Hit points (N,3) float32 in the sensor frame (body FLU at ``position``)."""
+        return self.scan_rings(position, rotation, t)[0]
+
+    def scan_rings(self, position: np.ndarray, rotation: np.ndarray,
+                   t: float) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`scan` and each return's ring ((N,) uint16, the laser's channel, 0 = the
+        lowest beam: what ``bus.messages.elevation_rings`` finds from the point, known
+        here from the ray without it)."""
         cfg = self.config
         dist = self.ranges(position, rotation, t)
         n = raycast.gather_hits(dist, cfg.max_range, self._idx)
         sigma = cfg.noise_sigma
         noise = self._rng.standard_normal(n) if sigma > 0 else self._zeros[:n]
         out = np.empty((n, 3), np.float32)
+        rings = np.empty(n, np.uint16)
         m = raycast.make_points(dist, self._idx, n, noise, sigma, cfg.min_range, cfg.max_range,
-                                self.dirs, out)
-        return out[:m]
+                                self.dirs, cfg.channels, out, rings)
+        return out[:m], rings[:m]

@@ -132,9 +132,10 @@ class ControlStep:
                                            stamp))
         self.pub[keys.TRUTH].put(m.odometry(truth.position, truth.velocity,
                                             quat_from_matrix(truth.rotation), stamp))
-        points, lidar = s.scan(), s.lidar.config  # VLP-16 layout: x, y, z, intensity, ring
-        cloud = m.pointcloud(points, stamp, rings=m.elevation_rings(
-            points, lidar.min_elevation_deg, lidar.max_elevation_deg, lidar.channels))
+        # VLP-16 layout: x, y, z, intensity, ring; the lidar knows each return's ring
+        # (bus.messages.elevation_rings would recompute it from the point)
+        points, rings = s.scan_rings()
+        cloud = m.pointcloud(points, stamp, rings=rings)
         t_pub = time.monotonic()
         self.pub[keys.LIDAR_POINTS].put(cloud)
         return t_pub

@@ -282,10 +282,11 @@ def gather_hits(dist, tmax, out_idx) -> int:
 
 
 @nb.njit(**_JIT)
-def make_points(dist, idx, n, noise, sigma, rmin, rmax, dirs_s, out) -> int:
+def make_points(dist, idx, n, noise, sigma, rmin, rmax, dirs_s, nch, out, rings) -> int:
     """Noisy returns of rays idx[:n] as sensor-frame points; returns how many are kept.
 
-    range = dist + sigma * noise[k]; kept when rmin <= range <= rmax.
+    range = dist + sigma * noise[k]; kept when rmin <= range <= rmax. ``rings[m]``: the
+    kept return's channel (ray ``i`` is channel ``i % nch``, 0 = the lowest beam).
     """
     m = 0
     for k in range(n):
@@ -295,6 +296,7 @@ def make_points(dist, idx, n, noise, sigma, rmin, rmax, dirs_s, out) -> int:
             out[m, 0] = dirs_s[i, 0] * r
             out[m, 1] = dirs_s[i, 1] * r
             out[m, 2] = dirs_s[i, 2] * r
+            rings[m] = i % nch
             m += 1
     return m
 

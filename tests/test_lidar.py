@@ -228,6 +228,29 @@ def test_seeded_noise() -> None:
     assert np.array_equal(first, lid.scan(p, rot, 0.0))
 
 
+@pytest.mark.parametrize("name", ["valley", "city"])
+def test_rings_from_the_rays_are_the_elevation_rings(name: str) -> None:
+    """``scan_rings`` hands over each return's channel; it is what the sim publishes as
+    the cloud's ``ring`` and must equal ``bus.messages.elevation_rings`` of the point."""
+    from bus.messages import elevation_rings
+
+    w = world(name)
+    rng = np.random.default_rng(7)
+    cfg = LidarConfig(max_range=4.5)
+    a, b = Lidar(w, cfg, seed=3), Lidar(w, cfg, seed=3)
+    returns = 0
+    for _ in range(8):
+        p = w.sample_start_goal(rng)[0] + np.array([0.0, 0.0, rng.uniform(-1.5, 0.5)])
+        rot = yaw_pitch_roll(rng.uniform(-3, 3), *rng.uniform(-0.3, 0.3, size=2))
+        points, rings = a.scan_rings(p, rot, 0.0)
+        assert np.array_equal(points, b.scan(p, rot, 0.0))  # same points, same noise
+        assert rings.dtype == np.uint16 and rings.shape == (len(points),)
+        assert np.array_equal(rings, elevation_rings(points, cfg.min_elevation_deg,
+                                                     cfg.max_elevation_deg, cfg.channels))
+        returns += len(points)
+    assert returns > 1000
+
+
 def test_nothing_in_range_gives_empty_scan() -> None:
     lid = Lidar(world("valley"), LidarConfig(max_range=4.5))
     pts = lid.scan(np.array([0.0, 0.0, 60.0]), np.eye(3), 0.0)
