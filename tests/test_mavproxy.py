@@ -180,8 +180,9 @@ def test_mavproxy_flies_the_vehicle(rig) -> None:
     # It reads the parameters: the whole list, COM_OF_LOSS_T as --param set it.
     until(lambda: mp.said(f"Received {len(table.PARAMS)} parameters"), 30.0,
           "the parameter list")
-    assert {"COM_OF_LOSS_T", "SKY_HOLD_LAND_T", "MPC_XY_VEL_MAX", "SKY_FLIGHT_LVL"} <= \
-        set(ear.params)
+    # MAVProxy forwards them to the listener after it has counted them: wait for them there
+    wanted = {"COM_OF_LOSS_T", "SKY_HOLD_LAND_T", "MPC_XY_VEL_MAX", "SKY_FLIGHT_LVL"}
+    until(lambda: wanted <= set(ear.params), 10.0, f"PARAM_VALUE of {sorted(wanted)}")
     mark = len(mp.take())
     mp.send(FLIGHT[0])  # param show COM_OF_LOSS_T
     until(lambda: any(line.split()[-2:] == ["COM_OF_LOSS_T", "0.5"] for line in mp.take()[mark:]),

@@ -93,6 +93,7 @@ PAPER: dict[str, dict[str, dict[str, float]]] = {
 }
 
 NAN = float("nan")
+TEXT_COLUMNS = ("outcome", "world")  # the CSV's columns that are not numbers
 
 
 # -- pure helpers: columns, windows, intervals ---------------------------------------------
@@ -117,10 +118,10 @@ def read_episodes(path: Path) -> dict[str, np.ndarray]:
         if None in row or any(v is None for v in row.values()):
             break  # too many or too few fields
         try:
-            rows.append({k: (v if k == "outcome" else float(v)) for k, v in row.items()})
+            rows.append({k: (v if k in TEXT_COLUMNS else float(v)) for k, v in row.items()})
         except ValueError:
             break
-    return {k: np.array([r[k] for r in rows], dtype=str if k == "outcome" else float)
+    return {k: np.array([r[k] for r in rows], dtype=str if k in TEXT_COLUMNS else float)
             for k in names}
 
 
