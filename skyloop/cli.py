@@ -192,6 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
 # Subcommands whose options are generated from config dataclasses with tyro
 # (skyloop.dataclass_cli): main() hands them the rest of the command line.
 GENERATED = {"train": _cmd_train, "eval": _cmd_eval}
+STACK = ("sim", "perception", "policy", "bridge", "up")  # skyloop.stack_cli.COMMANDS
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -202,6 +203,11 @@ def main(argv: list[str] | None = None) -> int:
         return passthrough(argv[0], argv[1:])
     if argv and argv[0] in GENERATED:  # their parsers are generated from dataclasses (tyro)
         args = argparse.Namespace(command=argv[0], rest=argv[1:], func=GENERATED[argv[0]])
+    elif argv and argv[0] in STACK:  # generated too (skyloop.stack_settings)
+        from skyloop.stack_cli import run_node
+
+        args = argparse.Namespace(command=argv[0], rest=argv[1:],
+                                  func=lambda a: run_node(a.command, a.rest))
     else:
         args = build_parser().parse_args(argv)
     try:

@@ -45,7 +45,6 @@ processes it replaced."""
 
 from __future__ import annotations
 
-import argparse
 import collections
 import json
 import os
@@ -61,10 +60,8 @@ from typing import Any
 
 from bus.node import Bus
 from bus.session import SessionConfig
-from bus.task import TASK
-from skyloop.argtypes import nonnegative_int, positive_float, positive_int
 from skyloop.signals import Stopped, stop_on_sigterm
-from skyloop.viewer import viz_target
+from skyloop.stack_settings import UpCommand
 
 # The lines the nodes print (sitl.node / policy.node; not imported: --help stays light);
 # the READY lines are for people reading the output: readiness comes over the bus.
@@ -273,14 +270,14 @@ class Graph:
                 c.proc.wait(1.0)
 
 
-def _security_flags(args: argparse.Namespace) -> list[str]:
+def _security_flags(args: UpCommand) -> list[str]:
     """The MAVLink security flags of ``up`` for the bridge and the policy (same key)."""
     flags = [] if args.signing_key_file is None else ["--signing-key-file",
                                                       str(args.signing_key_file)]
     return flags + [a for n in (args.allow_sysid or []) for a in ("--allow-sysid", str(n))]
 
 
-def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, list[str]]:
+def _node_args(args: UpCommand, ports: dict[str, int]) -> dict[str, list[str]]:
     clock = ["--realtime"] if args.realtime else ["--lockstep"]
     v = ["--vehicle", args.vehicle]
     params = [a for p in args.param for a in ("--param", p)]
@@ -305,19 +302,16 @@ def _node_args(args: argparse.Namespace, ports: dict[str, int]) -> dict[str, lis
     }
 
 
-def run_up(args: argparse.Namespace) -> int:
+def run_up(args: UpCommand) -> int:
     """Run the graph (see the module docstring); returns the exit code: 0 when the
     episodes finished, 1 when a node died or was not ready in time, 128 + the signal on
     Ctrl-C (130) or SIGTERM (143), after stopping every node and printing the summary of
     the episodes flown so far."""
     stop_on_sigterm()  # SIGTERM stops the graph as Ctrl-C does
-    gcs = args.policy == "none" or args.goals == "gcs"
-    if gcs and not args.realtime:
+    if args.ground_station and not args.realtime:
         print("--policy none / --goals gcs: free flight for a ground station, running "
               "--realtime")
-        args.realtime = True
-    if args.episodes is None:
-        args.episodes = 0 if gcs else 5
+    args = args.resolved()  # episodes and the clock as these settings imply
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     env.setdefault("MAVLINK20", "1")
@@ -439,7 +433,7 @@ def run_up(args: argparse.Namespace) -> int:
     return 0
 
 
-def nodes_of(args: argparse.Namespace) -> list[str]:
+def nodes_of(args: UpCommand) -> list[str]:
     """The nodes ``skyloop up`` starts for these flags (the router aside)."""
     return [*(["record"] if args.log_dir else []), *(["viz"] if args.viz else []),
             "perception", "bridge",
@@ -461,7 +455,7 @@ def _wait_listening(endpoint: str, child: Child, timeout: float) -> bool:
     return False
 
 
-def _may_restart(graph: Graph, child: Child, args: argparse.Namespace) -> bool:
+def _may_restart(graph: Graph, child: Child, args: UpCommand) -> bool:
     """``--restart on-failure``: whether ``child`` (exited) is started again; says so."""
     code = child.proc.returncode
     n = graph.restarts[child.name]
@@ -483,7 +477,7 @@ def _died(graph: Graph, child: Child) -> int:
     return 1
 
 
-def _summary(graph: Graph, args: argparse.Namespace, wall_s: float) -> dict[str, Any]:
+def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
     s = dict(graph.summary or {})
     n = s.get("episodes", 0)
     s.update(policy=args.policy or "shipped", router=bool(args.router), log=graph.log_path,
@@ -506,66 +500,3 @@ def _summary(graph: Graph, args: argparse.Namespace, wall_s: float) -> dict[str,
     if graph.log_path:
         print(f"log: {graph.log_path}", flush=True)
     return s
-
-
-def add_up_parser(sub: Any, func: Any) -> None:
-    from mavlink_bridge.security import add_security_args
-
-    p = sub.add_parser("up", help="run the whole stack (sim, perception, policy, bridge, "
-                                  "[record], [router]) for N episodes")
-    p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=positive_int, default=None,
-                   help="episodes (default 5; --policy none / --goals gcs: goals, default "
-                        "until stopped)")
-    p.add_argument("--seed", type=int, default=1000, help="episode i uses seed + i")
-    p.add_argument("--max-steps", type=positive_int, default=TASK.max_steps,
-                   help="episode timeout in control steps (default: %(default)s, bus.task)")
-    p.add_argument("--goals", choices=("seeded", "gcs"), default="seeded",
-                   help="seeded: episodes from --seed (default); gcs: the policy flies "
-                        "toward goals from a ground station (missions, reposition) and "
-                        "hovers in between, until stopped")
-    p.add_argument("--policy", default="shipped",
-                   help="actor file, 'scripted', 'none' (no policy: the vehicle waits on "
-                        "the ground for a ground station) or 'shipped' (default)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--lockstep", dest="realtime", action="store_false", default=False)
-    g.add_argument("--realtime", dest="realtime", action="store_true")
-    p.add_argument("--router", action="store_true",
-                   help="start a Python Zenoh router; every node in client mode")
-    p.add_argument("--zenoh-config-dir", default=None, metavar="DIR",
-                   help="with --router: mutual TLS and access control on the bus, each node "
-                        "with DIR/<node>.json5 (what `skyloop certs --out DIR` writes)")
-    p.add_argument("--hub", default=None,
-                   help="Zenoh endpoint of the hub/router (default: a free loopback port)")
-    p.add_argument("--log-dir", default=None, help="record the run (MCAP) under this dir")
-    p.add_argument("--log-split-episodes", type=nonnegative_int, default=0, metavar="N",
-                   help="with --log-dir: a new MCAP file every N episodes (default 0: one)")
-    p.add_argument("--log-compression", choices=("zstd", "lz4", "none"), default="zstd",
-                   help="with --log-dir: MCAP chunk compression (default: zstd, about 40%% "
-                        "smaller than none; see skyloop record --help)")
-    p.add_argument("--json", default=None, help="write the summary here")
-    p.add_argument("--vehicle", default="uav1")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                   help="vehicle parameter for the sim (bus/params.py), repeatable")
-    p.add_argument("--api-port", type=int, default=14540)
-    p.add_argument("--api-local-port", type=int, default=14580)
-    p.add_argument("--gcs-port", type=int, default=14550)
-    p.add_argument("--gcs-local-port", type=int, default=18570)
-    p.add_argument("--lockstep-timeout", type=positive_float, default=2.0, metavar="S",
-                   help="lockstep: how long the sim waits for a step's command before it "
-                        "steps without it and aborts the episode (default: 2)")
-    p.add_argument("--restart", choices=("no", "on-failure"), default="no",
-                   help="on-failure: start a perception, bridge, policy or router that exits "
-                        "with a failure again, the run goes on (default: no, the run stops)")
-    p.add_argument("--max-restarts", type=positive_int, default=3, metavar="N",
-                   help="restarts per node with --restart on-failure (default: 3)")
-    p.add_argument("--viz", nargs="?", const="spawn", default=None, type=viz_target,
-                   metavar="TARGET",
-                   help="watch the run in 3D (Rerun): spawn (the native viewer, the default "
-                        "of a bare --viz), web (a web viewer on localhost, for a headless "
-                        "machine; it stays up after the run until Ctrl-C) or save:PATH.rrd")
-    p.add_argument("--viz-scan-every", type=positive_int, default=5, metavar="N",
-                   help="with --viz: draw the LiDAR scan every N steps (default: 5)")
-    p.add_argument("-v", "--verbose", action="store_true", help="echo every node's output")
-    add_security_args(p)  # --expose: the bridge binds 0.0.0.0 (ground stations elsewhere)
-    p.set_defaults(func=func)

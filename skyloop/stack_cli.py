@@ -2,7 +2,11 @@
 ``router`` and ``up``. Each node is a thin binding of a core to the bus (see the
 ``node.py`` of its package); this module only parses flags, opens the Zenoh session
 (``SKYLOOP_ZENOH_*`` environment, overridden by ``--mode/--connect/--listen``), handles
-SIGINT/SIGTERM and closes things in order."""
+SIGINT/SIGTERM and closes things in order.
+
+The options of ``sim``, ``perception``, ``policy``, ``bridge`` and ``up`` are generated
+from their settings dataclasses (``skyloop.stack_settings``) with tyro
+(``skyloop.dataclass_cli.parse``): :data:`COMMANDS`, :func:`parse_node`."""
 
 from __future__ import annotations
 
@@ -11,24 +15,22 @@ import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable, Sequence
 from typing import Any
 
-from bus.task import TASK
-from skyloop.argtypes import add_bus_flags, nonnegative_int, positive_float, positive_int
-
-MAVLINK_DEFAULTS = {"api_port": 14540, "api_local_port": 14580, "gcs_port": 14550,
-                    "gcs_local_port": 18570}
-
-
-def _clock_args(p: argparse.ArgumentParser) -> None:
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--lockstep", dest="realtime", action="store_false", default=False,
-                   help="advance only when the step's command arrived (default)")
-    g.add_argument("--realtime", dest="realtime", action="store_true",
-                   help="pace by the wall clock at 10 Hz")
+from skyloop.dataclass_cli import parse
+from skyloop.stack_settings import (
+    BridgeCommand,
+    BusFlags,
+    PerceptionCommand,
+    PolicyCommand,
+    SimCommand,
+    UpCommand,
+    bare_viz,
+)
 
 
-def _open_bus(args: argparse.Namespace) -> Any:
+def _open_bus(args: BusFlags) -> Any:
     from bus.node import Bus
     from bus.session import SessionConfig
 
@@ -54,28 +56,11 @@ def _raise_on_term() -> None:
 
 
 # ----------------------------------------------------------------------------- nodes
-def parse_params(items: list[str]) -> dict[str, float]:
-    """``NAME=VALUE`` flags -> a checked parameter dict (``bus.params``); SystemExit
-    naming the bad one."""
-    from bus import params
-
-    out: dict[str, float] = {}
-    for item in items:
-        name, sep, value = item.partition("=")
-        try:
-            if not sep:
-                raise ValueError(f"{item!r} is not NAME=VALUE")
-            out[name] = params.check(name, value)
-        except ValueError as err:
-            raise SystemExit(f"--param: {err}") from None
-    return out
-
-
-def cmd_sim(args: argparse.Namespace) -> int:
+def cmd_sim(args: SimCommand) -> int:
     from sitl.node import SimNode, SimNodeConfig
 
     _raise_on_term()
-    values = parse_params(args.param)
+    values = args.params
     bus = _open_bus(args)
     try:
         node = SimNode(bus, SimNodeConfig(scenario=args.scenario, episodes=args.episodes,
@@ -91,7 +76,7 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_perception(args: argparse.Namespace) -> int:
+def cmd_perception(args: PerceptionCommand) -> int:
     from perception.node import PerceptionNode
 
     stop = _stop_event()
@@ -110,7 +95,7 @@ def cmd_perception(args: argparse.Namespace) -> int:
     return 0
 
 
-def policy_client_config(args: argparse.Namespace) -> Any:
+def policy_client_config(args: PolicyCommand) -> Any:
     """The policy's MAVLink endpoint from its flags; ValueError (naming the flag) if
     they ask for something unsafe, e.g. a non-loopback ``--api-host`` without
     ``--expose``."""
@@ -123,7 +108,7 @@ def policy_client_config(args: argparse.Namespace) -> Any:
                                 security=security)
 
 
-def bridge_link_config(args: argparse.Namespace) -> Any:
+def bridge_link_config(args: BridgeCommand) -> Any:
     """The vehicle's MAVLink links from the bridge's flags; ValueError (naming the flag)
     for a non-loopback ``--bind`` without ``--expose`` or an unreadable signing key."""
     from mavlink_bridge.security import check_bind, security_from_args
@@ -139,14 +124,14 @@ def bridge_link_config(args: argparse.Namespace) -> Any:
         params_file=params_file, security=security)
 
 
-def _config_or_exit(build: Any, args: argparse.Namespace, name: str) -> Any:
+def _config_or_exit(build: Any, args: Any, name: str) -> Any:
     try:
         return build(args)
     except (ValueError, OSError) as err:
         raise SystemExit(f"skyloop {name}: {err}") from None
 
 
-def cmd_policy(args: argparse.Namespace) -> int:
+def cmd_policy(args: PolicyCommand) -> int:
     from policy.node import READY_LINE, PolicyNode
 
     if args.policy == "none":
@@ -158,7 +143,7 @@ def cmd_policy(args: argparse.Namespace) -> int:
     from policy.evaluate import make_controller
 
     torch.set_num_threads(1)
-    controller = make_controller(None if args.policy == "shipped" else args.policy)
+    controller = make_controller(args.actor)
     # Until it flies, SIGTERM interrupts whatever start-up waits on (the heartbeat, arming,
     # the takeoff), as Ctrl-C does (main exits 130 or 143, after the ``finally`` below has
     # closed what was opened); from then on the loop checks ``stop`` every step.
@@ -192,11 +177,11 @@ def cmd_policy(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_bridge(args: argparse.Namespace) -> int:
+def cmd_bridge(args: BridgeCommand) -> int:
     from mavlink_bridge.node import BridgeNode
 
     link = _config_or_exit(bridge_link_config, args, "bridge")
-    overrides = parse_params(args.param)
+    overrides = args.params
     from mavlink_bridge.transport import LinkBindError
 
     stop = _stop_event()
@@ -247,88 +232,51 @@ def cmd_certs(args: argparse.Namespace) -> int:
     return passthrough("certs", args.rest)
 
 
-def cmd_up(args: argparse.Namespace) -> int:
+def cmd_up(args: UpCommand) -> int:
     from skyloop.launcher import run_up
 
     return run_up(args)
 
 
 # ----------------------------------------------------------------------------- parsers
+#: name -> (settings dataclass, what runs it, one line of help)
+COMMANDS: dict[str, tuple[type, Callable[[Any], int], str]] = {
+    "sim": (SimCommand, cmd_sim, "simulator node: the vehicle, its commander and failsafes, "
+                                 "seeded episodes on the bus"),
+    "perception": (PerceptionCommand, cmd_perception,
+                   "perception node: scan + odom + goal -> observation"),
+    "policy": (PolicyCommand, cmd_policy,
+               "policy node: observation -> actor -> MAVLink setpoints"),
+    "bridge": (BridgeCommand, cmd_bridge, "the vehicle's MAVLink endpoint (commands go to "
+                                          "the sim's commander over the bus)"),
+    "up": (UpCommand, cmd_up, "run the whole stack (sim, perception, policy, bridge, "
+                              "[record], [router]) for N episodes"),
+}
+
+
+def parse_node(argv: Sequence[str]) -> Any:
+    """The settings of ``skyloop NAME ARGS`` (``argv`` = [NAME, *ARGS], NAME one of
+    :data:`COMMANDS`); ``--help`` exits 0, a bad command line exits 2 with one line."""
+    name, rest = argv[0], list(argv[1:])
+    cls, _, description = COMMANDS[name]
+    if name == "up":
+        rest = bare_viz(rest)
+    return parse(cls, rest, prog=f"skyloop {name}", description=description)
+
+
+def run_node(name: str, argv: Sequence[str]) -> int:
+    """``skyloop NAME ARGS``: parse (exit 2 on a bad value, before anything starts), run."""
+    settings = parse_node([name, *argv])
+    return COMMANDS[name][1](settings)
+
+
 def add_stack_commands(sub: Any) -> None:
-    """Register the stack's subcommands on ``sub`` (argparse subparsers)."""
-    from mavlink_bridge.security import add_security_args
-
-    p = sub.add_parser("sim", help="simulator node: the vehicle, its commander and "
-                                   "failsafes, seeded episodes on the bus")
-    add_bus_flags(p)
-    _clock_args(p)
-    p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=nonnegative_int, default=1,
-                   help="episodes to run (--free-flight: goals to reach, 0: until stopped)")
-    p.add_argument("--free-flight", action="store_true",
-                   help="no seeded placements: wait on the ground for a ground station; "
-                        "an episode is one goal, no timeout")
-    p.add_argument("--goals-from-bus", action="store_true",
-                   help="free flight toward goals on the goal topic only (a ground station's "
-                        "missions and clicks); between goals the vehicle holds")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                   help="vehicle parameter (bus/params.py: COM_OF_LOSS_T, SKY_HOLD_LAND_T, "
-                        "MPC_XY_VEL_MAX, MPC_Z_VEL_MAX, MIS_TAKEOFF_ALT, GF_MAX_HOR_DIST, "
-                        "SKY_FLIGHT_LVL, SKY_ICO_RADIUS)")
-    p.add_argument("--lockstep-timeout", type=positive_float, default=2.0,
-                   help="lockstep: wall seconds to wait for a step's command in OFFBOARD "
-                        "before flying without it (default 2)")
-    p.add_argument("--seed", type=int, default=0, help="episode i uses seed + i")
-    p.add_argument("--max-steps", type=positive_int, default=TASK.max_steps,
-                   help="timeout in control steps (default: %(default)s, bus.task)")
-    p.add_argument("--wait-go", action="store_true",
-                   help="after warming up, print SKYLOOP-SIM-READY and wait for a stdin line")
-    p.set_defaults(func=cmd_sim)
-
-    p = sub.add_parser("perception", help="perception node: scan + odom + goal -> observation")
-    add_bus_flags(p)
-    p.set_defaults(func=cmd_perception)
-
-    p = sub.add_parser("policy", help="policy node: observation -> actor -> MAVLink setpoints")
-    add_bus_flags(p)
-    _clock_args(p)
-    p.add_argument("--policy", default=None,
-                   help="actor file, 'scripted', 'none' or 'shipped' (default)")
-    p.add_argument("--api-host", default="127.0.0.1", help="address to listen on")
-    p.add_argument("--api-port", type=int, default=MAVLINK_DEFAULTS["api_port"],
-                   help="UDP port to listen on (PX4 SITL API link: 14540)")
-    p.add_argument("--takeoff-altitude", type=float, default=None)
-    p.add_argument("--weights-from-bus", action="store_true",
-                   help="load actor weights a learner publishes (topic 'actor'), swapped in "
-                        "between episodes")
-    add_security_args(p)
-    p.add_argument("--hold", action="store_true",
-                   help="between episodes stream a zero setpoint (hover in OFFBOARD) and take "
-                        "OFFBOARD again at a new episode (goals from a ground station)")
-    p.set_defaults(func=cmd_policy)
-
-    p = sub.add_parser("bridge", help="the vehicle's MAVLink endpoint (commands go to "
-                                      "the sim's commander over the bus)")
-    add_bus_flags(p)
-    p.add_argument("--bind", default="127.0.0.1", help="local address of both links")
-    p.add_argument("--api-host", default="127.0.0.1", help="where the offboard client is")
-    p.add_argument("--api-port", type=int, default=MAVLINK_DEFAULTS["api_port"])
-    p.add_argument("--api-local-port", type=int, default=MAVLINK_DEFAULTS["api_local_port"])
-    p.add_argument("--gcs-host", default="127.0.0.1", help="where the ground station is")
-    p.add_argument("--gcs-port", type=int, default=MAVLINK_DEFAULTS["gcs_port"])
-    p.add_argument("--gcs-local-port", type=int, default=MAVLINK_DEFAULTS["gcs_local_port"])
-    p.add_argument("--no-gcs", action="store_true", help="no ground-station link")
-    p.add_argument("--command-timeout", type=float, default=1.0,
-                   help="seconds to wait for the sim's answer to a command (then "
-                        "TEMPORARILY_REJECTED)")
-    p.add_argument("--params-file", default="auto", metavar="PATH|auto|none",
-                   help="where ground-station parameter changes persist (auto: "
-                        "$XDG_STATE_HOME/skyloop/params-sys<id>.json; none: memory only)")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                   help="parameter value for this run (not persisted; wins over the file); "
-                        "`skyloop up` passes the sim's --param here too")
-    add_security_args(p)
-    p.set_defaults(func=cmd_bridge)
+    """Register the stack's subcommands on ``sub`` (argparse subparsers) for
+    ``skyloop --help``; ``skyloop.cli.main`` hands each its own command line."""
+    for name, (_, _, text) in COMMANDS.items():
+        p = sub.add_parser(name, help=f"{text} (see '{name} --help')", add_help=False)
+        p.add_argument("rest", nargs=argparse.REMAINDER)
+        p.set_defaults(func=lambda args, name=name: run_node(name, args.rest))
 
     p = sub.add_parser("record", help="record skyloop/** into MCAP (see 'record --help')",
                        add_help=False)
@@ -345,7 +293,3 @@ def add_stack_commands(sub: Any) -> None:
                        add_help=False)
     p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=cmd_certs)
-
-    from skyloop.launcher import add_up_parser
-
-    add_up_parser(sub, cmd_up)

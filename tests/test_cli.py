@@ -73,18 +73,17 @@ def test_mavlink_nodes_refuse_to_expose_without_the_flag():
 def test_security_flags_reach_bridge_and_policy(tmp_path):
     """``skyloop up`` hands the same key and allow-list to the bridge and the policy, and
     each builds a signing endpoint from them (a bad key file is a clear error)."""
-    from skyloop.cli import build_parser
     from skyloop.launcher import _node_args
-    from skyloop.stack_cli import bridge_link_config, policy_client_config
+    from skyloop.stack_cli import bridge_link_config, parse_node, policy_client_config
 
     key = tmp_path / "key"
     key.write_text("correct horse battery staple\n")
-    up = build_parser().parse_args(["up", "--signing-key-file", str(key), "--allow-sysid",
-                                    "255", "--expose", "--param", "COM_OF_LOSS_T=0.5"])
+    up = parse_node(["up", "--signing-key-file", str(key), "--allow-sysid", "255",
+                     "--expose", "--param", "COM_OF_LOSS_T=0.5"])
     nodes = _node_args(up, {"api": 1, "api_local": 2, "gcs": 3, "gcs_local": 4})
     built = {"bridge": bridge_link_config, "policy": policy_client_config}
     for name, build in built.items():
-        sec = build(build_parser().parse_args(nodes[name])).security
+        sec = build(parse_node(nodes[name])).security
         assert sec.secret_key is not None and len(sec.secret_key) == 32
         assert sec.allow_sysids == frozenset({255})
     assert "--expose" in nodes["bridge"] and "--expose" not in nodes["policy"]

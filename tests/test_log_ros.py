@@ -331,19 +331,15 @@ def flight_messages(flight):
 def test_up_log_compression_reaches_the_recorder(flight):
     """`skyloop up --log-compression lz4`: every chunk of the run is lz4; without the
     flag the recorder is asked for zstd."""
-    import argparse
-
     from mcap.reader import make_reader
 
-    from skyloop.launcher import add_up_parser
+    from skyloop.stack_cli import parse_node
 
     (path,) = flight[0].glob("*.mcap")
     with open(path, "rb") as f:
         chunks = make_reader(f).get_summary().chunk_indexes
     assert chunks and {c.compression for c in chunks} == {"lz4"}
-    parser = argparse.ArgumentParser()
-    add_up_parser(parser.add_subparsers(), None)
-    assert parser.parse_args(["up"]).log_compression == "zstd"
+    assert parse_node(["up"]).log_compression == "zstd"
 
 
 def test_flight_log_topics_are_there_and_decode(flight_messages):

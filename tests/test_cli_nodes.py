@@ -1,0 +1,257 @@
+"""The stack's commands (``skyloop sim``, ``perception``, ``policy``, ``bridge``, ``up``)
+have options generated from their settings dataclasses (``skyloop.stack_settings``,
+tyro): every flag they had keeps its name and meaning, ``--help`` shows each default
+(the dataclass's) and the choices, and a bad value is one line naming the flag, exit 2,
+before anything starts."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+import pytest
+
+from bus.task import TASK
+from skyloop.stack_cli import COMMANDS, parse_node
+from skyloop.stack_settings import SimCommand, UpCommand
+
+BUS = ["--vehicle", "--mode", "--connect", "--listen", "--zenoh-config", "-v", "--verbose"]
+CLOCK = ["--lockstep", "--realtime"]
+SECURITY = ["--signing-key-file", "--allow-sysid", "--expose"]
+PORTS = ["--api-port", "--api-local-port", "--gcs-port", "--gcs-local-port"]
+#: every flag each command had when it was hand-written argparse (tests, README, docker
+#: compose files and the launcher use them)
+FLAGS = {
+    "sim": [*BUS, *CLOCK, "--scenario", "--episodes", "--free-flight", "--goals-from-bus",
+            "--param", "--lockstep-timeout", "--seed", "--max-steps", "--wait-go"],
+    "perception": BUS,
+    "policy": [*BUS, *CLOCK, *SECURITY, "--policy", "--api-host", "--api-port",
+               "--takeoff-altitude", "--weights-from-bus", "--hold"],
+    "bridge": [*BUS, *SECURITY, *PORTS, "--bind", "--api-host", "--gcs-host", "--no-gcs",
+               "--command-timeout", "--params-file", "--param"],
+    "up": [*CLOCK, *SECURITY, *PORTS, "--scenario", "--episodes", "--seed", "--max-steps",
+           "--goals", "--policy", "--router", "--zenoh-config-dir", "--hub", "--log-dir",
+           "--log-split-episodes", "--log-compression", "--json", "--vehicle", "--param",
+           "--lockstep-timeout", "--restart", "--max-restarts", "--viz", "--viz-scan-every",
+           "-v", "--verbose"],
+}
+
+
+def help_entries(text: str) -> dict[str, str]:
+    """Each flag (aliases too: ``-v``) -> its help row(s), from tyro's boxed ``--help``."""
+    entries: dict[str, str] = {}
+    current: list[str] = []
+    for line in text.splitlines():
+        row = line.strip().strip("│").rstrip()
+        start = re.match(r" ((?:-[a-z], )?--[a-z0-9-]+)", row)  # an entry starts one space in
+        if start:
+            current = start.group(1).split(", ")
+            for name in current:
+                entries[name] = row
+        elif current and row.startswith("  "):
+            for name in current:
+                entries[name] += " " + row.strip()
+        else:
+            current = []
+    return entries
+
+
+def flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+@pytest.fixture(scope="module")
+def helps() -> dict[str, str]:
+    out = {}
+    for name in COMMANDS:
+        proc = subprocess.run([sys.executable, "-m", "skyloop", name, "--help"],
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0 and proc.stderr == "", (name, proc.stderr)
+        out[name] = proc.stdout
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_every_flag_is_kept_and_help_shows_its_default(helps, name):
+    entries = help_entries(helps[name])
+    assert helps[name].startswith(f"usage: skyloop {name} ")
+    missing = [f for f in FLAGS[name] if f not in entries]
+    assert not missing, (name, missing)
+    cls = COMMANDS[name][0]
+    assert {flag(f.name) for f in fields(cls)} <= set(entries)
+    hints = {"mode": "$SKYLOOP_ZENOH_MODE or peer", "zenoh_config": "$ZENOH_CONFIG",
+             "signing_key_file": "$SKYLOOP_MAVLINK_KEY", "lockstep": "(the default)",
+             "takeoff_altitude": "MIS_TAKEOFF_ALT", "episodes": "(default: ",
+             "hub": "free loopback port", "viz": "no viewer"}
+    for f in fields(cls):
+        entry = entries[flag(f.name)]
+        if f.default == ():  # a repeatable flag: none by default
+            assert "(repeatable)" in entry, entry
+        elif f.name in hints and f.default is None:
+            assert hints[f.name] in entry, entry
+        elif f.name == "lockstep":
+            assert entry.endswith("(the default)"), entry
+        else:
+            shown = re.search(r"\(default: (.*?)\)$", entry)
+            assert shown and shown.group(1) == str(f.default), (name, f.name, entry)
+
+
+def test_help_shows_choices_and_the_defaults_that_live_elsewhere(helps):
+    up = help_entries(helps["up"])
+    assert "{seeded,gcs}" in up["--goals"] and "{no,on-failure}" in up["--restart"]
+    assert "{zstd,lz4,none}" in up["--log-compression"]
+    assert "(default: zstd)" in up["--log-compression"]
+    assert f"(default: {TASK.max_steps})" in up["--max-steps"]  # the task specification's
+    assert "(default: 5;" in up["--episodes"]
+    for name in ("sim", "perception", "policy", "bridge"):
+        assert "--mode {peer,client}" in help_entries(helps[name])["--mode"]
+    bridge = help_entries(helps["bridge"])
+    assert ["(default: 14540)" in bridge["--api-port"], "(default: 18570)" in
+            bridge["--gcs-local-port"]] == [True, True]
+
+
+def test_defaults_agree_with_the_configs_they_feed():
+    """The sim's defaults are ``SimNodeConfig``'s, the ports the MAVLink configs'."""
+    from mavlink_bridge.offboard_client import OffboardClientConfig
+    from mavlink_bridge.vehicle_link import VehicleLinkConfig
+    from sitl.node_step import SimNodeConfig
+
+    sim, node = SimCommand(), SimNodeConfig()
+    assert (sim.scenario, sim.episodes, sim.seed, sim.vehicle, sim.realtime, sim.max_steps,
+            sim.free_flight, sim.goals_from_bus, sim.lockstep_timeout, sim.params) == (
+        node.scenario, node.episodes, node.seed, node.vehicle, node.realtime, node.max_steps,
+        node.free_flight, node.goals_from_bus, node.lockstep_timeout_s, node.params)
+    links, up = VehicleLinkConfig(), UpCommand()
+    assert links.api is not None and links.gcs is not None
+    assert (up.api_port, up.api_local_port, up.gcs_port, up.gcs_local_port) == (
+        links.api.remote_port, links.api.local_port, links.gcs.remote_port,
+        links.gcs.local_port) == (OffboardClientConfig().listen_port, 14580, 14550, 18570)
+    assert parse_node(["policy"]).api_port == up.api_port
+
+
+BAD = [
+    ("sim", ["--episodes", "-1"], "--episodes", "-1"),
+    ("sim", ["--max-steps", "0"], "--max-steps", "0"),
+    ("sim", ["--seed", "x"], "--seed", "x"),
+    ("sim", ["--lockstep-timeout", "0"], "--lockstep-timeout", "0"),
+    ("sim", ["--param", "NOPE=1"], "--param", "NOPE"),
+    ("sim", ["--param", "COM_OF_LOSS_T"], "--param", "COM_OF_LOSS_T"),
+    ("sim", ["--lockstep", "--realtime"], "--realtime", "--lockstep"),
+    ("perception", ["--mode", "router"], "--mode", "router"),
+    ("policy", ["--api-port", "70000"], "--api-port", "70000"),
+    ("policy", ["--allow-sysid", "x"], "--allow-sysid", "x"),
+    ("policy", ["--takeoff-altitude", "-2"], "--takeoff-altitude", "-2"),
+    ("bridge", ["--gcs-port", "0"], "--gcs-port", "0"),
+    ("bridge", ["--command-timeout", "-1"], "--command-timeout", "-1"),
+    ("bridge", ["--param", "MPC_XY_VEL_MAX=abc"], "--param", "abc"),
+    ("up", ["--episodes", "-1"], "--episodes", "-1"),
+    ("up", ["--episodes", "0"], "--episodes", "0"),
+    ("up", ["--max-restarts", "0"], "--max-restarts", "0"),
+    ("up", ["--viz-scan-every", "0"], "--viz-scan-every", "0"),
+    ("up", ["--log-split-episodes", "-1"], "--log-split-episodes", "-1"),
+    ("up", ["--goals", "mission"], "--goals", "mission"),
+    ("up", ["--restart", "always"], "--restart", "always"),
+    ("up", ["--log-compression", "gzip"], "--log-compression", "gzip"),
+    ("up", ["--viz", "window"], "--viz", "window"),
+    ("up", ["--max-steps", "-300"], "--max-steps", "-300"),
+]
+
+
+@pytest.mark.parametrize("name, argv, bad_flag, value", BAD)
+def test_a_bad_value_is_one_line_naming_the_flag(capsys, name, argv, bad_flag, value):
+    with pytest.raises(SystemExit) as exit_:
+        parse_node([name, *argv])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2
+    assert err.count("\n") == 1, err
+    assert err.startswith(f"skyloop {name}: error: argument {bad_flag}: "), err
+    assert value in err, err
+
+
+def test_a_bad_value_stops_up_before_anything_starts(tmp_path):
+    logs = tmp_path / "logs"
+    for argv in (["--episodes", "-1"], ["--param", "SKY_ICO_RADIUS=-3"],
+                 ["--viz", "nowhere"]):
+        proc = subprocess.run([sys.executable, "-m", "skyloop", "up", "--log-dir", str(logs),
+                               *argv], capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 2, (argv, proc.stderr)
+        assert proc.stderr.count("\n") == 1 and proc.stderr.startswith(
+            "skyloop up: error: argument "), proc.stderr
+        assert proc.stdout == "" and not logs.exists()  # no node started, nothing recorded
+
+
+def test_command_lines_give_the_settings_they_say():
+    sim = parse_node(["sim", "--realtime", "--scenario", "city", "--episodes", "0",
+                      "--seed", "7", "--max-steps", "50", "--lockstep-timeout", "0.5",
+                      "--param", "COM_OF_LOSS_T=0.5", "--param", "MPC_XY_VEL_MAX=1.5",
+                      "--free-flight", "--wait-go", "--vehicle", "uav2", "-v",
+                      "--mode", "client", "--connect", "tcp/127.0.0.1:7447"])
+    assert (sim.realtime, sim.scenario, sim.episodes, sim.seed, sim.max_steps,
+            sim.lockstep_timeout, sim.free_flight, sim.wait_go, sim.vehicle, sim.verbose,
+            sim.mode, sim.connect) == (True, "city", 0, 7, 50, 0.5, True, True, "uav2", True,
+                                       "client", "tcp/127.0.0.1:7447")
+    assert sim.params == {"COM_OF_LOSS_T": 0.5, "MPC_XY_VEL_MAX": 1.5}
+    policy = parse_node(["policy", "--policy", "scripted", "--allow-sysid", "245",
+                         "--allow-sysid", "255", "--hold", "--takeoff-altitude", "3"])
+    assert (policy.actor, policy.allow_sysid, policy.hold, policy.takeoff_altitude,
+            policy.realtime) == ("scripted", (245, 255), True, 3.0, False)
+    assert parse_node(["policy"]).actor is None  # the shipped actor
+    bridge = parse_node(["bridge", "--no-gcs", "--params-file", "none", "--bind", "0.0.0.0",
+                         "--expose"])
+    assert (bridge.no_gcs, bridge.params_file, bridge.bind, bridge.expose) == (
+        True, "none", "0.0.0.0", True)
+
+
+def test_a_bare_viz_means_spawn():
+    assert parse_node(["up"]).viz is None
+    assert parse_node(["up", "--viz"]).viz == "spawn"
+    bare = parse_node(["up", "--viz", "--router"])
+    assert (bare.viz, bare.router) == ("spawn", True)
+    assert parse_node(["up", "--viz", "save:run.rrd"]).viz == "save:run.rrd"
+
+
+def test_the_launcher_hands_each_node_what_up_was_given():
+    from skyloop.launcher import _node_args, nodes_of
+
+    up = parse_node(["up", "--realtime", "--scenario", "forest", "--episodes", "3",
+                     "--seed", "9", "--max-steps", "120", "--lockstep-timeout", "1.5",
+                     "--param", "COM_OF_LOSS_T=0.5", "--vehicle", "uav7", "--goals", "gcs",
+                     "--policy", "scripted", "--viz", "web", "--viz-scan-every", "2"]).resolved()
+    nodes = {name: parse_node(argv) for name, argv in _node_args(up, {
+        "api": 1, "api_local": 2, "gcs": 3, "gcs_local": 4}).items() if name != "viz"}
+    sim, policy, bridge = nodes["sim"], nodes["policy"], nodes["bridge"]
+    assert (sim.scenario, sim.episodes, sim.seed, sim.max_steps, sim.lockstep_timeout,
+            sim.realtime, sim.goals_from_bus, sim.param) == (
+        "forest", 3, 9, 120, 1.5, True, True, ("COM_OF_LOSS_T=0.5",))
+    assert {n.vehicle for n in nodes.values()} == {"uav7"}
+    assert (policy.policy, policy.hold, policy.realtime, policy.api_port) == (
+        "scripted", True, True, 1)
+    assert (bridge.api_port, bridge.api_local_port, bridge.gcs_port, bridge.gcs_local_port,
+            bridge.param) == (1, 2, 3, 4, ("COM_OF_LOSS_T=0.5",))
+    lockstep = _node_args(parse_node(["up"]).resolved(), {"api": 1, "api_local": 2, "gcs": 3,
+                                               "gcs_local": 4})
+    assert not parse_node(lockstep["sim"]).realtime and parse_node(lockstep["sim"]).lockstep
+    assert parse_node(lockstep["sim"]).episodes == 5
+    free = parse_node(["up", "--policy", "none"]).resolved()
+    assert (free.episodes, free.realtime, free.lockstep) == (0, True, False)
+    assert "policy" not in nodes_of(free) and "--free-flight" in _node_args(free, {
+        "api": 1, "api_local": 2, "gcs": 3, "gcs_local": 4})["sim"]
+
+
+def test_other_compose_files_parse():
+    """The vehicle and companion compose files start nodes with flags that parse."""
+    import yaml
+
+    docker = Path(__file__).resolve().parent.parent / "docker"
+    seen = set()
+    for path in sorted(docker.glob("compose*.yaml")):
+        for service in (yaml.safe_load(path.read_text()) or {}).get("services", {}).values():
+            command = [re.sub(r"\$\{[A-Z0-9_]+:-([^}]*)\}", r"\1", str(a))
+                       for a in (service or {}).get("command") or []]
+            if command and command[0] in COMMANDS:
+                parse_node(command)
+                seen.add(command[0])
+    assert {"sim", "perception", "policy", "bridge"} <= seen
