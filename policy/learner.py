@@ -1,4 +1,4 @@
-"""The actor-learner's settings (``skyloop learner``), numpy only.
+"""The actor-learner's settings (``skyloop learner``), numpy and tyro only.
 
 The node is :mod:`policy.learner_node`, the command line :mod:`skyloop.learner_cli`.
 Policy nodes started with ``skyloop policy --weights-from-bus`` fly the versions it
@@ -7,50 +7,90 @@ publishes, swapped in between episodes.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
+from typing import Annotated, ClassVar
+
+import tyro
 
 from policy.rewards import GOAL_REWARDS as REWARDS  # numpy only
+from policy.settings import Algo, ConfigError, Reward, check_at_least
 
 ALGOS = ("td3", "ddpg")  # policy.agents.ALGOS (which imports torch)
 
 
 @dataclass
 class LearnerConfig:
-    """What the learner learns from and how (see :mod:`policy.learner_node`)."""
+    """What the learner learns from and how (see :mod:`policy.learner_node`). Each
+    default here is the only one: ``skyloop learner``'s options are generated from these
+    fields (``skyloop.learner_cli``, with tyro); a bad value is a ``ConfigError`` naming
+    the flag, on construction."""
 
-    vehicles: list[str] = field(default_factory=lambda: ["*"])  # "*": every vehicle
-    algo: str = "td3"
-    reward: str = "abr"
+    vehicles: Annotated[list[str], tyro.conf.arg(metavar="NAME [NAME ...]")] = field(
+        default_factory=lambda: ["*"])
+    """vehicles to learn from and publish to ('*': every one)"""
+    algo: Algo = "td3"
+    """the agent"""
+    reward: Reward = "abr"
+    """goal reward that rewrites each episode (abr-method.md)"""
     seed: int = 0
-    updates_per_step: float = 1.0  # TD3 updates per new env step
-    warmup: int = 1000  # transitions in the buffer before updates start [choice]
-    critic_warmup: int = 1000  # first updates train the critic only [choice]
-    publish_every: int = 1  # consumed episodes between two publishes
-    checkpoint_every: int = 50  # consumed episodes between two checkpoints
-    init_actor: str | None = "shipped"  # "shipped", "scratch" or an actor file
+    """the learner's seed (networks, exploration noise)"""
+    updates_per_step: float = 1.0
+    """TD3 updates per new env step"""
+    warmup: Annotated[int, tyro.conf.arg(metavar="TRANSITIONS")] = 1000
+    """transitions in the buffer before updates start"""
+    critic_warmup: Annotated[int, tyro.conf.arg(metavar="UPDATES", help=(
+        "the first updates train the critic only, so a fresh critic does not drag a "
+        "trained --init-actor around"))] = 1000
+    publish_every: Annotated[int, tyro.conf.arg(metavar="EPISODES")] = 1
+    """consumed episodes between two publishes of the actor"""
+    checkpoint_every: Annotated[int, tyro.conf.arg(metavar="EPISODES")] = 50
+    """consumed episodes between two checkpoints"""
+    init_actor: Annotated[str | None, tyro.conf.arg(
+        metavar="shipped|scratch|FILE")] = "shipped"
+    """the actor to start from: the shipped one, a fresh one, or an actor file"""
     buffer_size: int = 1_000_000
-    max_episodes: int = 0  # stop after this many (0: until SIGINT/SIGTERM)
-    grace_s: float = 2.0  # wait for an episode's late observations/commands
-    queue_size: int = 100_000  # messages between the Zenoh callbacks and the main loop
-    threads: int = 1  # torch threads
+    """replay buffer capacity in transitions"""
+    max_episodes: int = 0
+    """stop after this many episodes (0: until Ctrl-C/SIGTERM)"""
+    grace_s: Annotated[float, tyro.conf.arg(name="grace", metavar="S")] = 2.0
+    """how long an ended episode waits for its late observations and commands"""
+    # not a flag: messages between the Zenoh callbacks and the main loop
+    queue_size: tyro.conf.Suppress[int] = 100_000
+    threads: int = 1
+    """torch threads"""
     resume: bool = False
+    """continue from OUT/checkpoint.pt"""
+
+    # the least value of each count; a smaller one is refused on construction
+    AT_LEAST: ClassVar[dict[str, int]] = {
+        "publish_every": 1, "checkpoint_every": 1, "queue_size": 1, "buffer_size": 1,
+        "threads": 1, "warmup": 0, "critic_warmup": 0, "max_episodes": 0}
+
+    def __post_init__(self) -> None:
+        self.validate()
 
     def validate(self) -> None:
+        """Raise ``ConfigError`` (a ``ValueError`` naming the flag) for a bad value; runs
+        on construction, and again by the learner (fields may change after it)."""
         from bus.keys import check_vehicle
 
         if self.algo not in ALGOS:
-            raise ValueError(f"unknown algorithm {self.algo!r}; choose from {ALGOS}")
+            raise ConfigError("algo", f"unknown algorithm {self.algo!r}; choose from {ALGOS}")
         if self.reward not in REWARDS:
-            raise ValueError(f"unknown reward {self.reward!r}; choose from {REWARDS}")
+            raise ConfigError("reward", f"unknown reward {self.reward!r}; choose from "
+                                        f"{tuple(REWARDS)}")
+        if not self.vehicles:
+            raise ConfigError("vehicles", "expected at least one vehicle name or '*'")
         for v in self.vehicles:
-            check_vehicle(v, wildcard=True)
+            try:
+                check_vehicle(v, wildcard=True)
+            except ValueError as err:
+                raise ConfigError("vehicles", str(err)) from None
         if "*" in self.vehicles and len(self.vehicles) > 1:
-            raise ValueError("--vehicles: '*' (every vehicle) or a list of names, not both")
-        for name in ("publish_every", "checkpoint_every", "queue_size", "buffer_size",
-                     "threads"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-        if min(self.updates_per_step, self.warmup, self.critic_warmup, self.max_episodes,
-               self.grace_s) < 0:
-            raise ValueError("--updates-per-step, --warmup, --critic-warmup, --max-episodes "
-                             "and --grace must be >= 0")
+            raise ConfigError("vehicles", "'*' (every vehicle) or a list of names, not both")
+        check_at_least(self, self.AT_LEAST)
+        for name, flag_name in (("updates_per_step", "updates_per_step"), ("grace_s", "grace")):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(flag_name, f"must be a finite number, 0 or more, got {value}")

@@ -8,8 +8,14 @@ names the field and its command-line flag, raised when the dataclass is construc
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Literal
 
-__all__ = ["ConfigError", "check_at_least"]
+__all__ = ["Algo", "ConfigError", "Reward", "check_at_least"]
+
+#: the agents (the keys of ``policy.agents.ALGOS``) and the goal rewards (of
+#: ``policy.rewards.GOAL_REWARDS``) a command line may choose (tests check they agree)
+Algo = Literal["td3", "ddpg"]
+Reward = Literal["tr", "ngr", "egr", "abr"]
 
 
 class ConfigError(ValueError):

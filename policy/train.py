@@ -77,7 +77,7 @@ from policy.env import UavNavEnv
 from policy.plots import CSV_NAME, plot_runs
 from policy.replay import ReplayBuffer
 from policy.rewards import GOAL_REWARDS, RewardConfig
-from policy.settings import ConfigError, check_at_least
+from policy.settings import Algo, ConfigError, Reward, check_at_least
 from policy.td3 import PRECISIONS, flush_denormals
 
 CHECKPOINT = "checkpoint.pt"
@@ -96,8 +96,6 @@ CSV_FIELDS = ["episode", "return", "steps", "outcome", "success_rate_500",
 WINDOW = 500  # success rate over the last 500 episodes (abr-method.md)
 
 
-Algo = Literal["td3", "ddpg"]  # the keys of policy.agents.ALGOS
-Reward = Literal["tr", "ngr", "egr", "abr"]  # policy.rewards.GOAL_REWARDS
 Precision = Literal["fp32", "bf16"]  # the keys of policy.td3.PRECISIONS
 
 

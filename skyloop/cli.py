@@ -45,6 +45,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return train_main(args.rest)
 
 
+def _cmd_learner(args: argparse.Namespace) -> int:
+    from skyloop.learner_cli import main as learner_main
+
+    return learner_main(args.rest)
+
+
 def _cmd_log_repair(args: argparse.Namespace) -> int:
     from bus.log import recover_log
 
@@ -177,9 +183,11 @@ def build_parser() -> argparse.ArgumentParser:
     from skyloop.stack_cli import add_stack_commands
 
     add_stack_commands(sub)
-    from skyloop.learner_cli import add_learner_parser
-
-    add_learner_parser(sub)
+    p = sub.add_parser("learner", help="learn from live episodes on the bus, publish actor "
+                       "weights that 'policy --weights-from-bus' nodes fly (see 'learner "
+                       "--help')", add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=_cmd_learner)
     from skyloop.viewer import add_viewer_commands
 
     add_viewer_commands(sub)
@@ -191,7 +199,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # Subcommands whose options are generated from config dataclasses with tyro
 # (skyloop.dataclass_cli): main() hands them the rest of the command line.
-GENERATED = {"train": _cmd_train, "eval": _cmd_eval}
+GENERATED = {"train": _cmd_train, "eval": _cmd_eval, "learner": _cmd_learner}
 STACK = ("sim", "perception", "policy", "bridge", "up")  # skyloop.stack_cli.COMMANDS
 
 

@@ -1,7 +1,8 @@
-"""``skyloop learner``: the actor-learner's command line.
-
-Settings are :class:`policy.learner.LearnerConfig`; the node, :mod:`policy.learner_node`,
-is imported only when the command runs, so ``skyloop --help`` stays light.
+"""``skyloop learner``: the actor-learner's command line, generated from
+:class:`policy.learner.LearnerConfig` with tyro (``skyloop.dataclass_cli``), so each
+default lives once, in the dataclass, and ``--help`` shows it with the choices; the
+Zenoh flags are the nodes' (``skyloop.stack_settings.ZenohFlags``). The node,
+:mod:`policy.learner_node`, is imported only when the command runs.
 
 Example: two vehicles' stacks (``skyloop sim/perception/bridge/policy --vehicle uav1``
 and ``uav2``, distinct MAVLink ports) and::
@@ -11,33 +12,52 @@ and ``uav2``, distinct MAVLink ports) and::
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import signal
 import sys
 import threading
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated
 
-from policy.learner import ALGOS, REWARDS, LearnerConfig
-from skyloop.argtypes import add_bus_flags
+import tyro
+
+from policy.learner import LearnerConfig
+from skyloop.dataclass_cli import parse
+from skyloop.stack_settings import ZenohFlags
+
+__all__ = ["HELP", "LearnerCommand", "main", "parse_learner", "run_learner"]
+
+HELP = ("learn from live episodes on the bus, publish actor weights that "
+        "'policy --weights-from-bus' nodes fly")
 
 
-def cmd_learner(args: argparse.Namespace) -> int:
+@dataclass(kw_only=True)
+class LearnerCommand(ZenohFlags):
+    """The ``skyloop learner`` command line: the learner's config, where it writes, and
+    the Zenoh session."""
+
+    config: Annotated[LearnerConfig, tyro.conf.OmitArgPrefixes, tyro.conf.arg(
+        name="learner", help="the learner (policy.learner.LearnerConfig)")] = field(
+        default_factory=LearnerConfig)
+    out: Annotated[Path, tyro.conf.arg(metavar="DIR")]
+    """run directory (checkpoint, actor.pt)"""
+    no_progress: bool = False
+    """no progress bar"""
+
+
+def parse_learner(argv: Sequence[str]) -> LearnerCommand:
+    """The command line after ``skyloop learner``; exits 2 with one line on a bad one."""
+    return parse(LearnerCommand, argv, prog="skyloop learner", description=HELP)
+
+
+def run_learner(args: LearnerCommand) -> int:
     from bus.node import Bus
     from bus.session import SessionConfig
     from policy.learner_node import Learner
 
-    config = LearnerConfig(
-        vehicles=args.vehicles, algo=args.algo, reward=args.reward, seed=args.seed,
-        updates_per_step=args.updates_per_step, warmup=args.warmup,
-        critic_warmup=args.critic_warmup,
-        publish_every=args.publish_every, checkpoint_every=args.checkpoint_every,
-        init_actor=args.init_actor, buffer_size=args.buffer_size,
-        max_episodes=args.max_episodes, grace_s=args.grace, threads=args.threads,
-        resume=args.resume)
-    config.validate()
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -46,7 +66,7 @@ def cmd_learner(args: argparse.Namespace) -> int:
     bus = Bus.open(SessionConfig.from_flags(args.mode, args.connect, args.listen,
                                                args.zenoh_config))
     try:
-        learner = Learner(bus, config, Path(args.out),
+        learner = Learner(bus, args.config, args.out,
                           emit=lambda line: print(line, flush=True))
         summary = learner.run(stop.is_set, progress=not args.no_progress)
     finally:
@@ -58,37 +78,6 @@ def cmd_learner(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_learner_parser(sub: Any) -> None:
-    """Register ``skyloop learner`` on ``sub`` (argparse subparsers)."""
-    d = LearnerConfig()
-    p = sub.add_parser("learner", help="learn from live episodes on the bus, publish actor "
-                                       "weights that 'policy --weights-from-bus' nodes fly")
-    p.add_argument("--vehicles", nargs="+", default=d.vehicles, metavar="NAME",
-                   help="vehicles to learn from and publish to (default: '*', every one)")
-    p.add_argument("--algo", default=d.algo, choices=ALGOS)
-    p.add_argument("--reward", default=d.reward, choices=REWARDS,
-                   help="goal reward that rewrites each episode (default: abr)")
-    p.add_argument("--out", required=True, help="run directory (checkpoint, actor.pt)")
-    p.add_argument("--seed", type=int, default=d.seed)
-    p.add_argument("--updates-per-step", type=float, default=d.updates_per_step,
-                   help="updates per new env step (default: 1)")
-    p.add_argument("--warmup", type=int, default=d.warmup, metavar="TRANSITIONS",
-                   help="transitions in the buffer before updates start (default: 1000)")
-    p.add_argument("--critic-warmup", type=int, default=d.critic_warmup, metavar="UPDATES",
-                   help="the first updates train the critic only, so a fresh critic does not "
-                        "drag a trained --init-actor around (default: 1000)")
-    p.add_argument("--publish-every", type=int, default=d.publish_every, metavar="EPISODES")
-    p.add_argument("--checkpoint-every", type=int, default=d.checkpoint_every,
-                   metavar="EPISODES")
-    p.add_argument("--init-actor", default=d.init_actor,
-                   help="'shipped' (default), 'scratch' or an actor file")
-    p.add_argument("--buffer-size", type=int, default=d.buffer_size)
-    p.add_argument("--max-episodes", type=int, default=d.max_episodes,
-                   help="stop after this many episodes (default 0: until Ctrl-C/SIGTERM)")
-    p.add_argument("--grace", type=float, default=d.grace_s, metavar="S",
-                   help="how long an ended episode waits for late messages (default: 2)")
-    p.add_argument("--threads", type=int, default=d.threads, help="torch threads")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_bus_flags(p, vehicle=False)
-    p.set_defaults(func=cmd_learner)
+def main(argv: Sequence[str]) -> int:
+    """``skyloop learner ARGS``: parse, then run."""
+    return run_learner(parse_learner(argv))

@@ -6,8 +6,9 @@ before anything starts.
 
 The flag groups several commands take are one mixin each, inherited, so their flags
 stay flat (``--vehicle``, not ``--bus.vehicle``) and their attributes too
-(``settings.vehicle``): :class:`VehicleFlag`, :class:`BusFlags` (the Zenoh session of a
-node: ``SessionConfig.from_flags``), :class:`ClockFlags` (``--lockstep``/``--realtime``),
+(``settings.vehicle``): :class:`VehicleFlag`, :class:`ZenohFlags` (the Zenoh session of a
+node: ``SessionConfig.from_flags``; with ``--vehicle``: :class:`BusFlags`),
+:class:`ClockFlags` (``--lockstep``/``--realtime``),
 :class:`SecurityFlags` (``mavlink_bridge.security.security_from_args`` reads them),
 :class:`MavlinkPorts` and :class:`SimRules` (what ``up`` hands the sim).
 
@@ -38,7 +39,7 @@ from policy.settings import ConfigError
 
 __all__ = ["BridgeCommand", "BusFlags", "ClockFlags", "MavlinkPorts", "PerceptionCommand",
            "PolicyCommand", "SecurityFlags", "SimCommand", "SimRules", "UpCommand",
-           "VehicleFlag"]
+           "VehicleFlag", "ZenohFlags"]
 
 _LINKS = VehicleLinkConfig()
 assert _LINKS.api is not None and _LINKS.gcs is not None
@@ -99,9 +100,18 @@ class VehicleFlag(Settings):
     vehicle: str = "uav1"
     """vehicle name: its topics are skyloop/<vehicle>/..."""
 
+    def validate(self) -> None:
+        super().validate()
+        from bus.keys import check_vehicle
+
+        try:
+            check_vehicle(self.vehicle)
+        except ValueError as err:
+            raise ConfigError("vehicle", str(err)) from None
+
 
 @dataclass(kw_only=True)
-class BusFlags(VehicleFlag):
+class ZenohFlags(Settings):
     """The Zenoh session of a node (``bus.session.SessionConfig.from_flags``: a flag
     given wins over the ``SKYLOOP_ZENOH_*`` environment) and its logging."""
 
@@ -118,6 +128,11 @@ class BusFlags(VehicleFlag):
     """a Zenoh configuration file: TLS certificates, access control (skyloop certs)"""
     verbose: Annotated[bool, tyro.conf.arg(aliases=("-v",))] = False
     """debug logging"""
+
+
+@dataclass(kw_only=True)
+class BusFlags(ZenohFlags, VehicleFlag):
+    """A node of one vehicle: ``--vehicle`` and the Zenoh flags."""
 
 
 @dataclass(kw_only=True)

@@ -141,6 +141,8 @@ BAD = [
     ("sim", ["--param", "COM_OF_LOSS_T"], "--param", "COM_OF_LOSS_T"),
     ("sim", ["--lockstep", "--realtime"], "--realtime", "--lockstep"),
     ("perception", ["--mode", "router"], "--mode", "router"),
+    ("perception", ["--vehicle", "a/b"], "--vehicle", "a/b"),
+    ("up", ["--vehicle", "uav*"], "--vehicle", "uav*"),
     ("policy", ["--api-port", "70000"], "--api-port", "70000"),
     ("policy", ["--allow-sysid", "x"], "--allow-sysid", "x"),
     ("policy", ["--takeoff-altitude", "-2"], "--takeoff-altitude", "-2"),
@@ -255,3 +257,70 @@ def test_other_compose_files_parse():
                 parse_node(command)
                 seen.add(command[0])
     assert {"sim", "perception", "policy", "bridge"} <= seen
+
+
+# ----------------------------------------------------------------------------- learner
+LEARNER_FLAGS = ["--vehicles", "--algo", "--reward", "--out", "--seed", "--updates-per-step",
+                 "--warmup", "--critic-warmup", "--publish-every", "--checkpoint-every",
+                 "--init-actor", "--buffer-size", "--max-episodes", "--grace", "--threads",
+                 "--resume", "--no-progress", "--mode", "--connect", "--listen",
+                 "--zenoh-config", "-v", "--verbose"]
+
+
+def test_learner_options_come_from_its_config():
+    from policy.learner import ALGOS, REWARDS, LearnerConfig
+
+    proc = subprocess.run([sys.executable, "-m", "skyloop", "learner", "--help"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    entries = help_entries(proc.stdout)
+    assert [f for f in LEARNER_FLAGS if f not in entries] == []
+    assert "--queue-size" not in entries  # not a flag
+    names = {"grace_s": "--grace"}
+    for f in fields(LearnerConfig):
+        if f.name == "queue_size":
+            continue
+        default = f.default_factory() if f.name == "vehicles" else f.default
+        shown = re.search(r"\(default: (.*?)\)$", entries[names.get(f.name, flag(f.name))])
+        assert shown and shown.group(1) in (str(default), "'*'"), (f.name, shown)
+    assert "{td3,ddpg}" in entries["--algo"] and "{tr,ngr,egr,abr}" in entries["--reward"]
+    assert set(ALGOS) == {"td3", "ddpg"} and set(REWARDS) == {"tr", "ngr", "egr", "abr"}
+    assert "(required)" in entries["--out"]
+
+
+def test_a_learner_command_line_gives_the_config_it_says(capsys):
+    from policy.learner import LearnerConfig
+    from skyloop.learner_cli import parse_learner
+
+    command = parse_learner(["--vehicles", "uav1", "uav2", "--algo", "ddpg", "--reward", "egr",
+                             "--out", "runs/l", "--seed", "3", "--updates-per-step", "0.5",
+                             "--warmup", "10", "--critic-warmup", "0", "--publish-every", "2",
+                             "--checkpoint-every", "5", "--init-actor", "scratch",
+                             "--buffer-size", "100", "--max-episodes", "4", "--grace", "0.5",
+                             "--threads", "2", "--resume", "--no-progress", "-v",
+                             "--mode", "client", "--connect", "tcp/127.0.0.1:7447"])
+    assert command.config == LearnerConfig(
+        vehicles=["uav1", "uav2"], algo="ddpg", reward="egr", seed=3, updates_per_step=0.5,
+        warmup=10, critic_warmup=0, publish_every=2, checkpoint_every=5,
+        init_actor="scratch", buffer_size=100, max_episodes=4, grace_s=0.5, threads=2,
+        resume=True)
+    assert (command.out, command.no_progress, command.verbose, command.mode,
+            command.connect) == (Path("runs/l"), True, True, "client", "tcp/127.0.0.1:7447")
+    assert parse_learner(["--out", "o"]).config == LearnerConfig()
+    for argv, says in ((["--warmup", "-1"], "argument --warmup: must be 0 or more, got -1"),
+                       (["--publish-every", "0"], "argument --publish-every: must be at least"),
+                       (["--grace", "-1"], "argument --grace: "),
+                       (["--updates-per-step", "nan"], "argument --updates-per-step: "),
+                       (["--algo", "ppo"], "argument --algo: invalid choice: 'ppo'"),
+                       (["--reward", "x"], "argument --reward: invalid choice: 'x'"),
+                       (["--vehicles", "*", "uav1"], "argument --vehicles: '*'"),
+                       (["--vehicles", "a/b"], "argument --vehicles: vehicle must match"),
+                       (["--threads", "x"], "argument --threads: ")):
+        with pytest.raises(SystemExit) as exit_:
+            parse_learner([*argv, "--out", "unused"])
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and err.count("\n") == 1, (argv, err)
+        assert err.startswith(f"skyloop learner: error: {says}"), err
+    with pytest.raises(SystemExit):
+        parse_learner([])
+    assert "the following arguments are required: --out" in capsys.readouterr().err
