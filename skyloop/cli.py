@@ -3,40 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import sys
 from pathlib import Path
 
-from skyloop.argtypes import nonnegative_int, positive_int
+from skyloop.argtypes import nonnegative_int
 
 EVAL_HELP = "evaluate a policy: success/collision/timeout rates, 95% CI"
-
-
-def _cmd_demo(args: argparse.Namespace) -> int:
-    from skyloop.demo import run_demo
-
-    summary = run_demo(args.scenario, args.episodes, args.seed, Path(args.out_dir),
-                       policy=args.policy)
-    if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2))
-    return 0
-
-
-def _cmd_render(args: argparse.Namespace) -> int:
-    from skyloop.render import render_scenario
-
-    path = render_scenario(args.scenario, args.seed, Path(args.out))
-    print(f"wrote {path}")
-    return 0
-
-
-def _cmd_bench(args: argparse.Namespace) -> int:
-    from skyloop.bench import run_bench
-
-    run_bench(quick=args.quick, json_path=Path(args.json) if args.json else None,
-              only=args.only, minutes=args.minutes)
-    return 0
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
@@ -121,6 +94,20 @@ def _add_experiment(sub: argparse._SubParsersAction) -> None:
     r.set_defaults(func=_cmd_experiment_report)
 
 
+def _generated(sub: argparse._SubParsersAction, name: str, text: str) -> None:
+    """``skyloop NAME`` in ``skyloop --help``; its options are generated from a dataclass
+    (``skyloop.tool_cli``), and ``main`` hands it the rest of the command line."""
+    p = sub.add_parser(name, help=f"{text} (see '{name} --help')", add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=lambda args: _cmd_tool(name, args))
+
+
+def _cmd_tool(name: str, args: argparse.Namespace) -> int:
+    from skyloop.tool_cli import run_tool
+
+    return run_tool(name, args.rest)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="skyloop", description="Software-in-the-loop drone stack (see README.md)."
@@ -130,29 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"skyloop {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("demo", help="fly a controller through a scenario, print a summary")
-    p.add_argument("--scenario", default="valley")
-    p.add_argument("--episodes", type=positive_int, default=5)
-    p.add_argument("--seed", type=int, default=1000)
-    p.add_argument("--out-dir", default="out")
-    p.add_argument("--policy", help="actor file or 'scripted'; default: the shipped policy")
-    p.add_argument("--json", help="write the summary as JSON here")
-    p.set_defaults(func=_cmd_demo)
+    from skyloop.tool_cli import COMMANDS as TOOLS
 
-    p = sub.add_parser("render", help="draw a scenario: terrain, start/goal, a scan, faces")
-    p.add_argument("--scenario", default="valley")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="out/scenario.png")
-    p.set_defaults(func=_cmd_render)
-
-    p = sub.add_parser("bench", help="measure speed against peers; prints a table, writes JSON")
-    p.add_argument("--quick", action="store_true", help="a short run (under 45 s)")
-    p.add_argument("--json", help="write the results as JSON here")
-    p.add_argument("--only", nargs="*", help="run only these benchmark modules ('soak' "
-                                             "runs only when named)")
-    p.add_argument("--minutes", type=float, default=None,
-                   help="with --only soak: how long the stack runs (default 60; --quick 2)")
-    p.set_defaults(func=_cmd_bench)
+    for name in ("demo", "render", "bench"):
+        _generated(sub, name, TOOLS[name][2])
 
     p = sub.add_parser("log", help="episode logs (MCAP): repair")
     log_sub = p.add_subparsers(dest="log_command", required=True)
@@ -188,9 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
                        "--help')", add_help=False)
     p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=_cmd_learner)
-    from skyloop.viewer import add_viewer_commands
-
-    add_viewer_commands(sub)
+    for name in ("view", "viz"):
+        _generated(sub, name, TOOLS[name][2])
     from skyloop.health import add_health_command
 
     add_health_command(sub)
@@ -201,6 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
 # (skyloop.dataclass_cli): main() hands them the rest of the command line.
 GENERATED = {"train": _cmd_train, "eval": _cmd_eval, "learner": _cmd_learner}
 STACK = ("sim", "perception", "policy", "bridge", "up")  # skyloop.stack_cli.COMMANDS
+TOOLS = ("demo", "render", "bench", "view", "viz")  # skyloop.tool_cli.COMMANDS
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -216,6 +184,9 @@ def main(argv: list[str] | None = None) -> int:
 
         args = argparse.Namespace(command=argv[0], rest=argv[1:],
                                   func=lambda a: run_node(a.command, a.rest))
+    elif argv and argv[0] in TOOLS:  # and these (skyloop.tool_cli)
+        args = argparse.Namespace(command=argv[0], rest=argv[1:],
+                                  func=lambda a: _cmd_tool(a.command, a))
     else:
         args = build_parser().parse_args(argv)
     try:

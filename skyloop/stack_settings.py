@@ -27,7 +27,7 @@ import copy
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import tyro
 
@@ -39,7 +39,7 @@ from policy.settings import ConfigError
 
 __all__ = ["BridgeCommand", "BusFlags", "ClockFlags", "MavlinkPorts", "PerceptionCommand",
            "PolicyCommand", "SecurityFlags", "SimCommand", "SimRules", "UpCommand",
-           "VehicleFlag", "ZenohFlags"]
+           "VehicleFlag", "ViewFlags", "ZenohFlags", "at_least"]
 
 _LINKS = VehicleLinkConfig()
 assert _LINKS.api is not None and _LINKS.gcs is not None
@@ -58,7 +58,8 @@ class Settings:
         """Raise ``ConfigError`` (naming the flag) for a value that cannot run."""
 
 
-def _at_least(config: object, name: str, least: int) -> None:
+def at_least(config: object, name: str, least: int) -> None:
+    """``config.name`` (an integer, or None: left out) is at least ``least``."""
     value = getattr(config, name)
     if value is not None and value < least:
         word = "0 or more" if least == 0 else f"at least {least}"
@@ -95,6 +96,52 @@ def parse_params(items: tuple[str, ...] | list[str]) -> dict[str, float]:
 
 
 # ----------------------------------------------------------------------------- groups
+DEMO_SEED = 1000  # the seeds `skyloop up` and `skyloop demo` fly (episode i: seed + i)
+
+
+@dataclass(kw_only=True)
+class ScenarioFlag(Settings):
+    scenario: str = "valley"
+    """a world, family:NAME or mix:A=w,B=w (sitl.scenario, sitl.families)"""
+
+
+@dataclass(kw_only=True)
+class ViewFlags(Settings):
+    """Where a 3D view (Rerun) goes and what it draws (``skyloop.viewer``)."""
+
+    viz: Annotated[str, tyro.conf.arg(metavar="TARGET")] = "spawn"
+    """spawn (the native viewer), web (a web viewer on localhost) or save:PATH.rrd"""
+    scan_every: Annotated[int, tyro.conf.arg(metavar="N")] = 5
+    """draw the LiDAR scan every N steps"""
+    web_port: int = 9090
+    """--viz web: the viewer's HTTP port"""
+    grpc_port: int = 9876
+    """--viz web: the data's gRPC port"""
+
+    def validate(self) -> None:
+        super().validate()
+        at_least(self, "scan_every", 1)
+        _port(self, "web_port")
+        _port(self, "grpc_port")
+        self.target  # noqa: B018 - a ConfigError naming --viz for a bad one
+
+    @property
+    def target(self) -> Any:
+        """``--viz`` as a ``skyloop.viewer.Target``."""
+        return viz_target(self.viz)
+
+
+def viz_target(text: str) -> Any:
+    """A ``--viz`` value as a ``skyloop.viewer.Target``; ConfigError naming ``--viz``."""
+    from skyloop.viewer import parse_target
+
+    try:
+        return parse_target(text)
+    except ValueError as err:
+        problem = str(err).split(": ", 1)[-1]
+        raise ConfigError("viz", f"{problem}, got {text!r}") from None
+
+
 @dataclass(kw_only=True)
 class VehicleFlag(Settings):
     vehicle: str = "uav1"
@@ -198,12 +245,10 @@ class MavlinkPorts(ApiPort):
 
 
 @dataclass(kw_only=True)
-class SimRules(Settings):
+class SimRules(ScenarioFlag):
     """What the sim flies: the scenario, the episode limit, the lockstep wait and the
     vehicle's parameters."""
 
-    scenario: str = "valley"
-    """a world, family:NAME or mix:A=w,B=w (sitl.scenario, sitl.families)"""
     max_steps: int = TASK.max_steps
     """episode timeout in control steps (the task specification's, bus.task)"""
     lockstep_timeout: Annotated[float, tyro.conf.arg(metavar="S", help=(
@@ -216,7 +261,7 @@ class SimRules(Settings):
 
     def validate(self) -> None:
         super().validate()
-        _at_least(self, "max_steps", 1)
+        at_least(self, "max_steps", 1)
         _positive(self, "lockstep_timeout")
         parse_params(self.param)
 
@@ -257,7 +302,7 @@ class SimCommand(SimRules, ClockFlags, BusFlags):
 
     def validate(self) -> None:
         super().validate()
-        _at_least(self, "episodes", 0)
+        at_least(self, "episodes", 0)
 
 
 @dataclass(kw_only=True)
@@ -326,7 +371,7 @@ class UpCommand(SimRules, MavlinkPorts, SecurityFlags, PolicyFlag, ClockFlags, V
     episodes: Annotated[int | None, tyro.conf.arg(metavar="N", help_behavior_hint=(
         "(default: 5; --policy none / --goals gcs: until stopped)"))] = None
     """episodes (--policy none / --goals gcs: goals to reach)"""
-    seed: int = 1000
+    seed: int = DEMO_SEED
     """episode i uses seed + i"""
     goals: Annotated[Literal["seeded", "gcs"], tyro.conf.arg(help=(
         "seeded: episodes from --seed; gcs: the policy flies toward goals from a ground "
@@ -356,7 +401,7 @@ class UpCommand(SimRules, MavlinkPorts, SecurityFlags, PolicyFlag, ClockFlags, V
         "watch the run in 3D (Rerun): spawn (the native viewer; a bare --viz), web (a web "
         "viewer on localhost, for a headless machine; it stays up after the run until "
         "Ctrl-C) or save:PATH.rrd"), help_behavior_hint="(default: no viewer)")] = None
-    viz_scan_every: Annotated[int, tyro.conf.arg(metavar="N")] = 5
+    viz_scan_every: Annotated[int, tyro.conf.arg(metavar="N")] = ViewFlags.scan_every
     """with --viz: draw the LiDAR scan every N steps"""
     verbose: Annotated[bool, tyro.conf.arg(aliases=("-v",))] = False
     """echo every node's output"""
@@ -379,18 +424,12 @@ class UpCommand(SimRules, MavlinkPorts, SecurityFlags, PolicyFlag, ClockFlags, V
 
     def validate(self) -> None:
         super().validate()
-        _at_least(self, "episodes", 1)
-        _at_least(self, "log_split_episodes", 0)
-        _at_least(self, "max_restarts", 1)
-        _at_least(self, "viz_scan_every", 1)
+        at_least(self, "episodes", 1)
+        at_least(self, "log_split_episodes", 0)
+        at_least(self, "max_restarts", 1)
+        at_least(self, "viz_scan_every", 1)
         if self.viz is not None:
-            from skyloop.viewer import parse_target
-
-            try:
-                parse_target(self.viz)
-            except ValueError as err:
-                problem = str(err).split(": ", 1)[-1]
-                raise ConfigError("viz", f"{problem}, got {self.viz!r}") from None
+            viz_target(self.viz)
 
 
 VIZ_BARE = "spawn"  # what a bare ``skyloop up --viz`` means

@@ -15,8 +15,13 @@ from pathlib import Path
 import pytest
 
 from bus.task import TASK
-from skyloop.stack_cli import COMMANDS, parse_node
+from skyloop.stack_cli import COMMANDS as NODES
+from skyloop.stack_cli import parse_node
 from skyloop.stack_settings import SimCommand, UpCommand
+from skyloop.tool_cli import COMMANDS as TOOLS
+from skyloop.tool_cli import parse_tool
+
+COMMANDS = {**NODES, **TOOLS}
 
 BUS = ["--vehicle", "--mode", "--connect", "--listen", "--zenoh-config", "-v", "--verbose"]
 CLOCK = ["--lockstep", "--realtime"]
@@ -37,7 +42,16 @@ FLAGS = {
            "--log-split-episodes", "--log-compression", "--json", "--vehicle", "--param",
            "--lockstep-timeout", "--restart", "--max-restarts", "--viz", "--viz-scan-every",
            "-v", "--verbose"],
+    "demo": ["--scenario", "--episodes", "--seed", "--out-dir", "--policy", "--json"],
+    "render": ["--scenario", "--seed", "--out"],
+    "bench": ["--quick", "--json", "--only", "--minutes"],
+    "view": ["--vehicle", "--viz", "--scan-every", "--web-port", "--grpc-port"],
+    "viz": [*BUS, "--scenario", "--viz", "--scan-every", "--web-port", "--grpc-port"],
 }
+
+
+def parse_any(argv: list[str]):
+    return (parse_node if argv[0] in NODES else parse_tool)(argv)
 
 
 def help_entries(text: str) -> dict[str, str]:
@@ -81,12 +95,19 @@ def test_every_flag_is_kept_and_help_shows_its_default(helps, name):
     missing = [f for f in FLAGS[name] if f not in entries]
     assert not missing, (name, missing)
     cls = COMMANDS[name][0]
-    assert {flag(f.name) for f in fields(cls)} <= set(entries)
+    positional = {"log"}  # skyloop view LOG
+    assert {flag(f.name) for f in fields(cls) if f.name not in positional} <= set(entries)
     hints = {"mode": "$SKYLOOP_ZENOH_MODE or peer", "zenoh_config": "$ZENOH_CONFIG",
              "signing_key_file": "$SKYLOOP_MAVLINK_KEY", "lockstep": "(the default)",
              "takeoff_altitude": "MIS_TAKEOFF_ALT", "episodes": "(default: ",
-             "hub": "free loopback port", "viz": "no viewer"}
+             "hub": "free loopback port", "viz": "no viewer",
+             "policy": "(default: the shipped policy)", "only": "every module but soak",
+             "minutes": "(default: 60; --quick: 2)", "vehicle": "(default: every one)",
+             "scenario": "(default: the first episode's)"}
     for f in fields(cls):
+        if f.name in positional:
+            assert re.search(rf"^ *│? *{f.name.upper()} ", helps[name], re.M), helps[name]
+            continue
         entry = entries[flag(f.name)]
         if f.default == ():  # a repeatable flag: none by default
             assert "(repeatable)" in entry, entry
@@ -159,13 +180,21 @@ BAD = [
     ("up", ["--log-compression", "gzip"], "--log-compression", "gzip"),
     ("up", ["--viz", "window"], "--viz", "window"),
     ("up", ["--max-steps", "-300"], "--max-steps", "-300"),
+    ("demo", ["--episodes", "0"], "--episodes", "0"),
+    ("demo", ["--seed", "1.5"], "--seed", "1.5"),
+    ("render", ["--seed", "x"], "--seed", "x"),
+    ("bench", ["--minutes", "0"], "--minutes", "0"),
+    ("view", ["run", "--viz", "save:x.png"], "--viz", "save:x.png"),
+    ("view", ["run", "--scan-every", "0"], "--scan-every", "0"),
+    ("viz", ["--viz", "window"], "--viz", "window"),
+    ("viz", ["--grpc-port", "99999"], "--grpc-port", "99999"),
 ]
 
 
 @pytest.mark.parametrize("name, argv, bad_flag, value", BAD)
 def test_a_bad_value_is_one_line_naming_the_flag(capsys, name, argv, bad_flag, value):
     with pytest.raises(SystemExit) as exit_:
-        parse_node([name, *argv])
+        parse_any([name, *argv])
     err = capsys.readouterr().err
     assert exit_.value.code == 2
     assert err.count("\n") == 1, err
@@ -207,6 +236,21 @@ def test_command_lines_give_the_settings_they_say():
         True, "none", "0.0.0.0", True)
 
 
+def test_tool_command_lines_give_the_settings_they_say():
+    demo = parse_tool(["demo", "--scenario", "forest", "--episodes", "2", "--seed", "3",
+                       "--out-dir", "o", "--policy", "scripted", "--json", "d.json"])
+    assert (demo.scenario, demo.episodes, demo.seed, demo.out_dir, demo.policy,
+            demo.json) == ("forest", 2, 3, Path("o"), "scripted", Path("d.json"))
+    assert parse_tool(["demo"]).seed == UpCommand().seed == 1000  # the same demo seeds
+    bench = parse_tool(["bench", "--quick", "--only", "perception", "lidar", "--minutes", "2"])
+    assert (bench.quick, bench.only, bench.minutes) == (True, ["perception", "lidar"], 2.0)
+    view = parse_tool(["view", "run", "--viz", "web", "--web-port", "9091"])
+    assert (view.log, view.target.kind, view.web_port, view.vehicle) == ("run", "web", 9091,
+                                                                         None)
+    assert parse_tool(["view", "run"]).target.kind == "spawn"
+    assert UpCommand().viz_scan_every == parse_tool(["viz"]).scan_every
+
+
 def test_a_bare_viz_means_spawn():
     assert parse_node(["up"]).viz is None
     assert parse_node(["up", "--viz"]).viz == "spawn"
@@ -222,8 +266,10 @@ def test_the_launcher_hands_each_node_what_up_was_given():
                      "--seed", "9", "--max-steps", "120", "--lockstep-timeout", "1.5",
                      "--param", "COM_OF_LOSS_T=0.5", "--vehicle", "uav7", "--goals", "gcs",
                      "--policy", "scripted", "--viz", "web", "--viz-scan-every", "2"]).resolved()
-    nodes = {name: parse_node(argv) for name, argv in _node_args(up, {
-        "api": 1, "api_local": 2, "gcs": 3, "gcs_local": 4}).items() if name != "viz"}
+    nodes = {name: parse_any(argv) for name, argv in _node_args(up, {
+        "api": 1, "api_local": 2, "gcs": 3, "gcs_local": 4}).items()}
+    viz = nodes.pop("viz")
+    assert (viz.viz, viz.scan_every, viz.scenario, viz.vehicle) == ("web", 2, "forest", "uav7")
     sim, policy, bridge = nodes["sim"], nodes["policy"], nodes["bridge"]
     assert (sim.scenario, sim.episodes, sim.seed, sim.max_steps, sim.lockstep_timeout,
             sim.realtime, sim.goals_from_bus, sim.param) == (
