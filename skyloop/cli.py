@@ -24,6 +24,12 @@ def _cmd_learner(args: argparse.Namespace) -> int:
     return learner_main(args.rest)
 
 
+def _cmd_health(args: argparse.Namespace) -> int:
+    from skyloop.health import main as health_main
+
+    return health_main(args.rest)
+
+
 def _cmd_log_repair(args: argparse.Namespace) -> int:
     from bus.log import recover_log
 
@@ -158,15 +164,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_learner)
     for name in ("view", "viz"):
         _generated(sub, name, TOOLS[name][2])
-    from skyloop.health import add_health_command
-
-    add_health_command(sub)
+    p = sub.add_parser("health", help="is this node up: router reachable, session connected, "
+                       "ports bound, readiness token, topic published (a container health "
+                       "check; exit 0 or 1; see 'health --help')", add_help=False)
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(func=_cmd_health)
     return parser
 
 
 # Subcommands whose options are generated from config dataclasses with tyro
 # (skyloop.dataclass_cli): main() hands them the rest of the command line.
-GENERATED = {"train": _cmd_train, "eval": _cmd_eval, "learner": _cmd_learner}
+GENERATED = {"train": _cmd_train, "eval": _cmd_eval, "learner": _cmd_learner,
+             "health": _cmd_health}
 STACK = ("sim", "perception", "policy", "bridge", "up")  # skyloop.stack_cli.COMMANDS
 TOOLS = ("demo", "render", "bench", "view", "viz")  # skyloop.tool_cli.COMMANDS
 

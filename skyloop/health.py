@@ -22,13 +22,19 @@ naming the first that failed):
 
 from __future__ import annotations
 
-import argparse
 import os
 import socket
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
+
+import tyro
+
+from policy.settings import ConfigError
+from skyloop.settings_base import Repeated, VehicleFlag, bare_flag, positive
 
 ESTABLISHED, LISTEN = "01", "0A"
 
@@ -141,7 +147,7 @@ def check_publishing(topic: str, vehicle: str, timeout: float) -> str | None:
         session.close()
 
 
-def run_checks(args: argparse.Namespace) -> tuple[list[str], str | None]:
+def run_checks(args: HealthCommand) -> tuple[list[str], str | None]:
     """``(passed, failure)``: the checks that passed, then the first failure or None."""
     passed: list[str] = []
     router = args.router if args.router not in (None, "") else default_router()
@@ -168,11 +174,7 @@ def run_checks(args: argparse.Namespace) -> tuple[list[str], str | None]:
     return passed, None
 
 
-def cmd_health(args: argparse.Namespace) -> int:
-    if args.router is None and not (args.session or args.udp or args.ready
-                                    or args.publishing):
-        raise ValueError("nothing to check: give --router, --session, --udp, --ready or "
-                         "--publishing")
+def cmd_health(args: HealthCommand) -> int:
     t0 = time.monotonic()
     passed, failure = run_checks(args)
     ms = (time.monotonic() - t0) * 1000
@@ -183,39 +185,56 @@ def cmd_health(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_health_command(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("health", help="is this node up: router reachable, session "
-                                      "connected, ports bound, readiness token, topic "
-                                      "published (a container "
-                                      "health check; exit 0 or 1)")
-    p.add_argument("--router", nargs="?", const="", default=None, metavar="ENDPOINT",
-                   help="the Zenoh router accepts connections (default: the first of "
-                        "$SKYLOOP_ZENOH_CONNECT)")
-    p.add_argument("--session", action="store_true",
-                   help="this container holds a TCP connection to the router's port")
-    p.add_argument("--udp", type=int, action="append", default=[], metavar="PORT",
-                   help="a UDP socket is bound to PORT here (repeatable)")
-    p.add_argument("--ready", action="append", default=[], metavar="NODE",
-                   help="the node's readiness token is on the bus (repeatable)")
-    p.add_argument("--publishing", action="append", default=[], metavar="TOPIC",
-                   help="a message on skyloop/<vehicle>/TOPIC arrives (repeatable)")
-    p.add_argument("--vehicle", default="uav1",
-                   help="vehicle of --ready and --publishing (default: uav1)")
-    p.add_argument("--timeout", type=float, default=3.0,
-                   help="seconds each network check may take (default: 3)")
-    p.set_defaults(func=cmd_health)
+HELP = ("is this node up: router reachable, session connected, ports bound, readiness "
+        "token, topic published (a container health check; exit 0 or 1)")
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m skyloop.health``: the same command without the rest of the CLI's
-    imports (a health check runs every few seconds)."""
-    parser = argparse.ArgumentParser(prog="python -m skyloop.health")
-    add_health_command(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["health", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        return args.func(args)
-    except ValueError as err:
-        parser.exit(2, f"skyloop health: error: {err}\n")
+@dataclass(kw_only=True)
+class HealthCommand(VehicleFlag):
+    """``skyloop health`` (``python -m skyloop.health``): the checks to run, generated into
+    options with tyro (``skyloop.dataclass_cli.parse``); ``--vehicle`` is the vehicle of
+    ``--ready`` and ``--publishing``."""
+
+    router: Annotated[str | None, tyro.conf.arg(
+        metavar="[ENDPOINT]", help_behavior_hint="(default: no router check; a bare "
+        "--router: the first of $SKYLOOP_ZENOH_CONNECT)")] = None
+    """the Zenoh router accepts connections"""
+    session: bool = False
+    """this container holds a TCP connection to the router's port"""
+    udp: Annotated[tuple[int, ...], Repeated, tyro.conf.arg(metavar="PORT")] = ()
+    """a UDP socket is bound to PORT here"""
+    ready: Annotated[tuple[str, ...], Repeated, tyro.conf.arg(metavar="NODE")] = ()
+    """the node's readiness token is on the bus"""
+    publishing: Annotated[tuple[str, ...], Repeated, tyro.conf.arg(metavar="TOPIC")] = ()
+    """a message on skyloop/<vehicle>/TOPIC arrives"""
+    timeout: Annotated[float, tyro.conf.arg(metavar="S")] = 3.0
+    """seconds each network check may take"""
+
+    def validate(self) -> None:
+        super().validate()
+        positive(self, "timeout")
+        for udp in self.udp:
+            if not 1 <= udp <= 65535:
+                raise ConfigError("udp", f"must be a UDP port (1..65535), got {udp}")
+        if self.router is None and not (self.session or self.udp or self.ready
+                                        or self.publishing):
+            raise ValueError("nothing to check: give --router, --session, --udp, --ready or "
+                             "--publishing")
+
+
+def parse_health(argv: Sequence[str], prog: str = "skyloop health") -> HealthCommand:
+    """The checks asked for; a bare ``--router`` is ``--router ""`` (the default
+    endpoint). Exits 2 with one line on a bad command line."""
+    from skyloop.dataclass_cli import parse
+
+    return parse(HealthCommand, bare_flag(list(argv), "--router", ""), prog=prog,
+                 description=HELP)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m skyloop.health`` and ``skyloop health``: the same command without the
+    rest of the CLI's imports (a health check runs every few seconds)."""
+    return cmd_health(parse_health(sys.argv[1:] if argv is None else argv))
 
 
 if __name__ == "__main__":

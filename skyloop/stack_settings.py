@@ -24,7 +24,6 @@ tests/test_cli_nodes.py checks both agree. Only light modules are imported here.
 from __future__ import annotations
 
 import copy
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -36,6 +35,15 @@ from mavlink_bridge.offboard_client import OffboardClientConfig
 from mavlink_bridge.security import KEY_ENV
 from mavlink_bridge.vehicle_link import VehicleLinkConfig
 from policy.settings import ConfigError
+from skyloop.settings_base import (
+    Repeated,
+    Settings,
+    VehicleFlag,
+    at_least,
+    bare_flag,
+    port,
+    positive,
+)
 
 __all__ = ["BridgeCommand", "BusFlags", "ClockFlags", "MavlinkPorts", "PerceptionCommand",
            "PolicyCommand", "SecurityFlags", "SimCommand", "SimRules", "UpCommand",
@@ -43,41 +51,9 @@ __all__ = ["BridgeCommand", "BusFlags", "ClockFlags", "MavlinkPorts", "Perceptio
 
 _LINKS = VehicleLinkConfig()
 assert _LINKS.api is not None and _LINKS.gcs is not None
-Repeated = tyro.conf.UseAppendAction  # --param A=1 --param B=2, as argparse's append
 
 
 # ----------------------------------------------------------------------------- checks
-class Settings:
-    """A command's settings: :meth:`validate` runs on construction; each mixin's checks
-    its own fields and calls ``super().validate()``."""
-
-    def __post_init__(self) -> None:
-        self.validate()
-
-    def validate(self) -> None:
-        """Raise ``ConfigError`` (naming the flag) for a value that cannot run."""
-
-
-def at_least(config: object, name: str, least: int) -> None:
-    """``config.name`` (an integer, or None: left out) is at least ``least``."""
-    value = getattr(config, name)
-    if value is not None and value < least:
-        word = "0 or more" if least == 0 else f"at least {least}"
-        raise ConfigError(name, f"must be {word}, got {value}")
-
-
-def _positive(config: object, name: str) -> None:
-    value = getattr(config, name)
-    if not (math.isfinite(value) and value > 0.0):
-        raise ConfigError(name, f"must be a finite number above 0, got {value}")
-
-
-def _port(config: object, name: str, least: int = 1) -> None:
-    value = getattr(config, name)
-    if not least <= value <= 65535:
-        raise ConfigError(name, f"must be a UDP port ({least}..65535), got {value}")
-
-
 def parse_params(items: tuple[str, ...] | list[str]) -> dict[str, float]:
     """``NAME=VALUE`` flags -> a checked parameter dict (``bus.params``); ConfigError
     naming ``--param`` and the bad one."""
@@ -121,8 +97,8 @@ class ViewFlags(Settings):
     def validate(self) -> None:
         super().validate()
         at_least(self, "scan_every", 1)
-        _port(self, "web_port")
-        _port(self, "grpc_port")
+        port(self, "web_port")
+        port(self, "grpc_port")
         self.target  # noqa: B018 - a ConfigError naming --viz for a bad one
 
     @property
@@ -140,21 +116,6 @@ def viz_target(text: str) -> Any:
     except ValueError as err:
         problem = str(err).split(": ", 1)[-1]
         raise ConfigError("viz", f"{problem}, got {text!r}") from None
-
-
-@dataclass(kw_only=True)
-class VehicleFlag(Settings):
-    vehicle: str = "uav1"
-    """vehicle name: its topics are skyloop/<vehicle>/..."""
-
-    def validate(self) -> None:
-        super().validate()
-        from bus.keys import check_vehicle
-
-        try:
-            check_vehicle(self.vehicle)
-        except ValueError as err:
-            raise ConfigError("vehicle", str(err)) from None
 
 
 @dataclass(kw_only=True)
@@ -223,7 +184,7 @@ class ApiPort(Settings):
 
     def validate(self) -> None:
         super().validate()
-        _port(self, "api_port")
+        port(self, "api_port")
 
 
 @dataclass(kw_only=True)
@@ -241,7 +202,7 @@ class MavlinkPorts(ApiPort):
     def validate(self) -> None:
         super().validate()
         for name in ("api_local_port", "gcs_port", "gcs_local_port"):
-            _port(self, name, least=0 if name.endswith("local_port") else 1)
+            port(self, name, least=0 if name.endswith("local_port") else 1)
 
 
 @dataclass(kw_only=True)
@@ -262,7 +223,7 @@ class SimRules(ScenarioFlag):
     def validate(self) -> None:
         super().validate()
         at_least(self, "max_steps", 1)
-        _positive(self, "lockstep_timeout")
+        positive(self, "lockstep_timeout")
         parse_params(self.param)
 
     @property
@@ -328,7 +289,7 @@ class PolicyCommand(PolicyFlag, SecurityFlags, ApiPort, ClockFlags, BusFlags):
     def validate(self) -> None:
         super().validate()
         if self.takeoff_altitude is not None:
-            _positive(self, "takeoff_altitude")
+            positive(self, "takeoff_altitude")
 
 
 @dataclass(kw_only=True)
@@ -355,7 +316,7 @@ class BridgeCommand(SecurityFlags, MavlinkPorts, BusFlags):
 
     def validate(self) -> None:
         super().validate()
-        _positive(self, "command_timeout")
+        positive(self, "command_timeout")
         parse_params(self.param)
 
     @property
@@ -432,15 +393,7 @@ class UpCommand(SimRules, MavlinkPorts, SecurityFlags, PolicyFlag, ClockFlags, V
             viz_target(self.viz)
 
 
-VIZ_BARE = "spawn"  # what a bare ``skyloop up --viz`` means
-
-
 def bare_viz(argv: list[str]) -> list[str]:
     """``--viz`` given without a value (last, or before another flag) means
     ``--viz spawn``, as the argparse option with an optional value did."""
-    out: list[str] = []
-    for i, arg in enumerate(argv):
-        out.append(arg)
-        if arg == "--viz" and (i + 1 == len(argv) or argv[i + 1].startswith("-")):
-            out.append(VIZ_BARE)
-    return out
+    return bare_flag(argv, "--viz", "spawn")

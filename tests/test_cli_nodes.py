@@ -370,3 +370,51 @@ def test_a_learner_command_line_gives_the_config_it_says(capsys):
     with pytest.raises(SystemExit):
         parse_learner([])
     assert "the following arguments are required: --out" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- health
+def test_health_options_and_the_compose_health_checks(capsys):
+    """``python -m skyloop.health``: generated options; a bare ``--router`` is the
+    default endpoint (""), as the compose files' health checks use it."""
+    import socket
+
+    import yaml
+
+    from skyloop.health import HealthCommand, main, parse_health
+
+    proc = subprocess.run([sys.executable, "-m", "skyloop.health", "--help"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    entries = help_entries(proc.stdout)
+    for name in ("--router", "--session", "--udp", "--ready", "--publishing", "--vehicle",
+                 "--timeout"):
+        assert name in entries, name
+    assert "(default: 3.0)" in entries["--timeout"] and "(default: uav1)" in entries["--vehicle"]
+    assert "$SKYLOOP_ZENOH_CONNECT" in entries["--router"]
+    assert parse_health(["--router"]).router == ""
+    assert parse_health(["--router", "--ready", "policy"]) == HealthCommand(
+        router="", ready=("policy",))
+    assert parse_health(["--router", "tcp/r:7447", "--udp", "1", "--udp", "2"]) == \
+        HealthCommand(router="tcp/r:7447", udp=(1, 2))
+    docker = Path(__file__).resolve().parent.parent / "docker"
+    checks = [service["healthcheck"]["test"][4:] for path in docker.glob("compose*.yaml")
+              for service in ((yaml.safe_load(path.read_text()) or {}).get("services") or {}
+                              ).values() if service and "healthcheck" in service]
+    assert len(checks) >= 10
+    for argv in checks:
+        parse_health([re.sub(r"\$\{[A-Z0-9_]+:-([^}]*)\}", r"\1", str(a)) for a in argv])
+    for argv, says in (([], "nothing to check"), (["--udp", "0"], "argument --udp: "),
+                       (["--session", "--timeout", "0"], "argument --timeout: "),
+                       (["--ready", "policy", "--vehicle", "a/b"], "argument --vehicle: ")):
+        with pytest.raises(SystemExit) as exit_:
+            parse_health(argv)
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and err.count("\n") == 1, (argv, err)
+        assert err.startswith(f"skyloop health: error: {says}"), err
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp, socket.socket() as tcp:
+        udp.bind(("127.0.0.1", 0))
+        tcp.bind(("127.0.0.1", 0))
+        tcp.listen()
+        endpoint = f"tcp/127.0.0.1:{tcp.getsockname()[1]}"
+        assert main(["--router", endpoint, "--udp", str(udp.getsockname()[1])]) == 0
+        assert capsys.readouterr().out.startswith("healthy: ")
