@@ -181,7 +181,14 @@ TOOLS = ("demo", "render", "bench", "view", "viz")  # skyloop.tool_cli.COMMANDS
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else list(argv)
+    """``skyloop ARGS``: the exit code. A closed standard output (``skyloop train --help
+    | head -3``) ends it quietly, 141 (``skyloop.signals.quiet_broken_pipe``)."""
+    from skyloop.signals import quiet_broken_pipe
+
+    return quiet_broken_pipe(lambda: _main(sys.argv[1:] if argv is None else list(argv)))
+
+
+def _main(argv: list[str]) -> int:
     if argv and argv[0] in ("record", "router", "certs"):  # their own parsers take every flag
         from skyloop.stack_cli import passthrough
 

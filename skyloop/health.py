@@ -238,4 +238,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from skyloop.signals import quiet_broken_pipe
+
+    sys.exit(quiet_broken_pipe(main))

@@ -182,3 +182,29 @@ def test_eval_options_come_from_its_dataclass(capsys):
 
 def parse_eval(argv: list[str]) -> EvalConfig:
     return parse(EvalConfig, argv, prog="skyloop eval", description="")
+
+
+@pytest.mark.parametrize("args", [["train", "--help"], ["eval", "--help"], ["sim", "--help"],
+                                  ["up", "--help"], ["--help"]])
+def test_help_into_a_closed_pipe_exits_quietly(args):
+    """``skyloop train --help | head -3``: when the reader has gone, no traceback. The
+    pipe's read end is closed before the command writes, so every write breaks it (as
+    after ``head`` exits), deterministically."""
+    import os
+
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "skyloop", *args], stdout=write,
+                              stderr=subprocess.PIPE, text=True, timeout=120)
+    finally:
+        os.close(write)
+    assert proc.stderr == "", proc.stderr
+    assert proc.returncode in (0, 141), proc.returncode  # 141 = 128 + SIGPIPE, as `yes`
+
+
+def test_help_piped_into_head_prints_its_lines_and_no_traceback():
+    proc = subprocess.run(f"{sys.executable} -m skyloop train --help | head -3", shell=True,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert proc.stdout.startswith("usage: skyloop train") and proc.stdout.count("\n") == 3
