@@ -5,9 +5,6 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
-from pathlib import Path
-
-from skyloop.argtypes import nonnegative_int
 
 EVAL_HELP = "evaluate a policy: success/collision/timeout rates, 95% CI"
 
@@ -30,17 +27,6 @@ def _cmd_health(args: argparse.Namespace) -> int:
     return health_main(args.rest)
 
 
-def _cmd_log_repair(args: argparse.Namespace) -> int:
-    from bus.log import recover_log
-
-    src = Path(args.path)
-    if not src.exists():
-        raise FileNotFoundError(f"{src}: no such log file or run directory")
-    out, report = recover_log(src, args.out)
-    print(f"repaired: {out} ({report.summary()})")
-    return 0
-
-
 def _cmd_eval(args: argparse.Namespace) -> int:
     from policy.evaluate import EvalConfig, evaluate, format_summary
     from skyloop.dataclass_cli import parse
@@ -52,58 +38,23 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_plot(args: argparse.Namespace) -> int:
-    from policy.plots import plot_runs
+def _add_group(sub: argparse._SubParsersAction, group: str, text: str) -> None:
+    """``skyloop GROUP`` in ``skyloop --help`` and its commands in ``skyloop GROUP
+    --help``; each command's options are generated (``skyloop.tool_cli``)."""
+    from skyloop.tool_cli import COMMANDS as TOOLS
 
-    out = plot_runs([Path(d) for d in args.runs], Path(args.out))
-    print(f"wrote {out}")
-    return 0
-
-
-def _cmd_experiment_run(args: argparse.Namespace) -> int:
-    from skyloop.experiment.grid import load_grid
-    from skyloop.experiment.run import run_grid
-
-    grid = load_grid(args.grid)  # every error before anything starts
-    status = run_grid(grid, Path(args.out), max_concurrent=args.max_concurrent,
-                      address=args.address, cpus_per_trial=args.cpus_per_trial)
-    return 0 if all(s == "finished" for s in status.values()) else 1
+    p = sub.add_parser(group, help=text)
+    gsub = p.add_subparsers(dest=f"{group}_command", required=True)
+    for name, (_, _, help_text) in TOOLS.items():
+        if name.startswith(group + " "):
+            _generated(gsub, name, help_text, word=name.split()[1])
 
 
-def _cmd_experiment_report(args: argparse.Namespace) -> int:
-    from skyloop.experiment.report import write_report
-
-    paths = write_report(Path(args.dir), eval_episodes=args.eval_episodes)
-    for path in paths:
-        print(f"wrote {path}")
-    return 0
-
-
-def _add_experiment(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("experiment", help="grids of training runs on Ray Tune, and reports")
-    esub = p.add_subparsers(dest="experiment_command", required=True)
-    r = esub.add_parser("run", help="run or continue a grid (finished trials are skipped)")
-    r.add_argument("grid", help="grid file (TOML), e.g. experiments/paper_static.toml")
-    r.add_argument("--out", required=True, help="grid directory: one run directory per trial")
-    r.add_argument("--max-concurrent", type=int, metavar="N",
-                   help="at most N trials at once (default: the cluster's CPUs per trial)")
-    r.add_argument("--address", help="an existing Ray cluster (default: $RAY_ADDRESS, or "
-                   "an embedded Ray on this machine)")
-    r.add_argument("--cpus-per-trial", type=int, metavar="N",
-                   help="CPUs Ray reserves for each trial (default: 1 for sync trials, "
-                   "2 for parallel ones: learner and collector)")
-    r.set_defaults(func=_cmd_experiment_run)
-    r = esub.add_parser("report", help="REPORT.md, summary.json and figures of a grid")
-    r.add_argument("dir", help="grid directory written by 'skyloop experiment run'")
-    r.add_argument("--eval-episodes", type=nonnegative_int, default=0, metavar="N",
-                   help="evaluate each final actor on N held-out episodes (default: 0)")
-    r.set_defaults(func=_cmd_experiment_report)
-
-
-def _generated(sub: argparse._SubParsersAction, name: str, text: str) -> None:
+def _generated(sub: argparse._SubParsersAction, name: str, text: str,
+               word: str | None = None) -> None:
     """``skyloop NAME`` in ``skyloop --help``; its options are generated from a dataclass
     (``skyloop.tool_cli``), and ``main`` hands it the rest of the command line."""
-    p = sub.add_parser(name, help=f"{text} (see '{name} --help')", add_help=False)
+    p = sub.add_parser(word or name, help=f"{text} (see '{name} --help')", add_help=False)
     p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=lambda args: _cmd_tool(name, args))
 
@@ -128,15 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name in ("demo", "render", "bench"):
         _generated(sub, name, TOOLS[name][2])
 
-    p = sub.add_parser("log", help="episode logs (MCAP): repair")
-    log_sub = p.add_subparsers(dest="log_command", required=True)
-    r = log_sub.add_parser("repair", help="write an indexed, finished copy of a log whose "
-                                          "writer died (SIGKILL, power loss)")
-    r.add_argument("path", help="the .mcap file or its run directory")
-    r.add_argument("--out", default=None, metavar="DIR",
-                   help="where the copy's run directory goes (default: beside the source "
-                        "run, named <run>-recovered)")
-    r.set_defaults(func=_cmd_log_repair)
+    _add_group(sub, "log", "episode logs (MCAP): repair")
 
     p = sub.add_parser("train", help="train TD3/DDPG with a goal reward in the in-process env "
                        "(see 'train --help')", add_help=False)
@@ -148,12 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=_cmd_eval)
 
-    p = sub.add_parser("plot", help="success/collision curves of one or more training runs")
-    p.add_argument("runs", nargs="+", help="run directories")
-    p.add_argument("--out", default="out/curves.png")
-    p.set_defaults(func=_cmd_plot)
+    _generated(sub, "plot", TOOLS["plot"][2])
 
-    _add_experiment(sub)
+    _add_group(sub, "experiment", "grids of training runs on Ray Tune, and reports")
     from skyloop.stack_cli import add_stack_commands
 
     add_stack_commands(sub)
@@ -177,7 +117,14 @@ def build_parser() -> argparse.ArgumentParser:
 GENERATED = {"train": _cmd_train, "eval": _cmd_eval, "learner": _cmd_learner,
              "health": _cmd_health}
 STACK = ("sim", "perception", "policy", "bridge", "up")  # skyloop.stack_cli.COMMANDS
-TOOLS = ("demo", "render", "bench", "view", "viz")  # skyloop.tool_cli.COMMANDS
+
+
+def _tool(argv: list[str]) -> tuple[str, list[str]] | None:
+    """``(name, rest)`` of a command of ``skyloop.tool_cli`` (``demo``, ``experiment
+    run``, ...)."""
+    from skyloop.tool_cli import command_of
+
+    return command_of(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -200,8 +147,8 @@ def _main(argv: list[str]) -> int:
 
         args = argparse.Namespace(command=argv[0], rest=argv[1:],
                                   func=lambda a: run_node(a.command, a.rest))
-    elif argv and argv[0] in TOOLS:  # and these (skyloop.tool_cli)
-        args = argparse.Namespace(command=argv[0], rest=argv[1:],
+    elif (found := _tool(argv)) is not None:  # and these (skyloop.tool_cli)
+        args = argparse.Namespace(command=found[0], rest=found[1],
                                   func=lambda a: _cmd_tool(a.command, a))
     else:
         args = build_parser().parse_args(argv)

@@ -32,14 +32,30 @@ class UsageError(Exception):
 
 
 def _flags(argument: Any) -> str:
-    """An argument's flags as argparse names them: ``--episodes``."""
-    return "/".join(argument.lowered.name_or_flags)
+    """An argument's flags as argparse names them: ``--episodes``; a positional one by
+    its metavar (``LOG``)."""
+    names = argument.lowered.name_or_flags
+    metavar = getattr(argument.lowered, "metavar", None)
+    if names and not names[0].startswith("-") and isinstance(metavar, str) and metavar:
+        return metavar
+    return "/".join(names)
 
 
 def _value_error(message: str) -> str:
     """A dataclass's ``ValueError`` message as argparse says it: ``--flag: problem``
     (``policy.settings.ConfigError``) becomes ``argument --flag: problem``."""
     return f"argument {message}" if _FLAG_FIRST.match(message) else message
+
+
+def _first_line(message: str) -> str:
+    """tyro's message for a value no member of a union takes (``int | None``: "no type
+    matching ... Got errors: - <class 'NoneType'>: ... - <class 'int'>: invalid literal
+    ...") as one line: what the types other than None said."""
+    if "\n" not in message:
+        return message
+    said = [re.sub(r"^- <class '[^']*'>: ", "", line.strip()) for line in message.splitlines()
+            if line.strip().startswith("- ") and "NoneType" not in line]
+    return "; ".join(said) if said else " ".join(message.split())
 
 
 def _one_line(event: Any) -> None:
@@ -51,7 +67,7 @@ def _one_line(event: Any) -> None:
         if isinstance(event, e.InstantiationFailure) and event.argument is None:
             raise UsageError(_value_error(event.message))  # the dataclass refused a value
         if isinstance(event, e.InstantiationFailure):  # a value of the wrong type
-            message = event.message
+            message = _first_line(event.message)
         elif isinstance(event, e.InvalidChoice):
             choices = ", ".join(repr(c) for c in event.choices)
             message = f"invalid choice: {event.value!r} (choose from {choices})"

@@ -6,11 +6,13 @@ before anything starts.
 
 The flag groups several commands take are one mixin each, inherited, so their flags
 stay flat (``--vehicle``, not ``--bus.vehicle``) and their attributes too
-(``settings.vehicle``): :class:`VehicleFlag`, :class:`ZenohFlags` (the Zenoh session of a
-node: ``SessionConfig.from_flags``; with ``--vehicle``: :class:`BusFlags`),
-:class:`ClockFlags` (``--lockstep``/``--realtime``),
-:class:`SecurityFlags` (``mavlink_bridge.security.security_from_args`` reads them),
-:class:`MavlinkPorts` and :class:`SimRules` (what ``up`` hands the sim).
+(``settings.vehicle``): ``VehicleFlag`` (``skyloop.settings_base``, with the base and
+the range checks), :class:`ZenohFlags` (the Zenoh session of a node:
+``SessionConfig.from_flags``; with ``--vehicle``: :class:`BusFlags`), :class:`ClockFlags`
+(``--lockstep``/``--realtime``), :class:`SecurityFlags`
+(``mavlink_bridge.security.security_from_args`` reads them), :class:`MavlinkPorts`,
+:class:`ScenarioFlag`, :class:`SimRules` (what ``up`` hands the sim) and
+:class:`ViewFlags` (``skyloop view``/``viz``, in ``skyloop.tool_cli``).
 
 Where a default belongs to a config of the code the flags feed, it is read from there:
 the episode limits from the task specification (``bus.task.TASK``), the MAVLink ports
@@ -45,9 +47,10 @@ from skyloop.settings_base import (
     positive,
 )
 
-__all__ = ["BridgeCommand", "BusFlags", "ClockFlags", "MavlinkPorts", "PerceptionCommand",
-           "PolicyCommand", "SecurityFlags", "SimCommand", "SimRules", "UpCommand",
-           "VehicleFlag", "ViewFlags", "ZenohFlags", "at_least"]
+__all__ = ["DEMO_SEED", "BridgeCommand", "BusFlags", "ClockFlags", "MavlinkPorts",
+           "PerceptionCommand", "PolicyCommand", "ScenarioFlag", "SecurityFlags", "Settings",
+           "SimCommand", "SimRules", "UpCommand", "VehicleFlag", "ViewFlags", "ZenohFlags",
+           "at_least", "bare_viz", "parse_params", "viz_target"]
 
 _LINKS = VehicleLinkConfig()
 assert _LINKS.api is not None and _LINKS.gcs is not None
@@ -127,9 +130,11 @@ class ZenohFlags(Settings):
         metavar="{peer,client}", help_behavior_hint="(default: $SKYLOOP_ZENOH_MODE or peer)",
     )] = None
     """Zenoh mode"""
-    connect: Annotated[str | None, tyro.conf.arg(metavar="ENDPOINTS")] = None
+    connect: Annotated[str | None, tyro.conf.arg(
+        metavar="ENDPOINTS", help_behavior_hint="(default: $SKYLOOP_ZENOH_CONNECT)")] = None
     """Zenoh endpoints to connect to, comma-separated"""
-    listen: Annotated[str | None, tyro.conf.arg(metavar="ENDPOINTS")] = None
+    listen: Annotated[str | None, tyro.conf.arg(
+        metavar="ENDPOINTS", help_behavior_hint="(default: $SKYLOOP_ZENOH_LISTEN)")] = None
     """Zenoh endpoints to listen on, comma-separated"""
     zenoh_config: Annotated[str | None, tyro.conf.arg(
         metavar="FILE", help_behavior_hint="(default: $ZENOH_CONFIG)")] = None

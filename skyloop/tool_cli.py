@@ -26,8 +26,9 @@ from skyloop.stack_settings import (
     at_least,
 )
 
-__all__ = ["COMMANDS", "BenchCommand", "DemoCommand", "RenderCommand", "ViewCommand",
-           "VizCommand", "parse_tool", "run_tool"]
+__all__ = ["COMMANDS", "BenchCommand", "DemoCommand", "ExperimentReportCommand",
+           "ExperimentRunCommand", "LogRepairCommand", "PlotCommand", "RenderCommand",
+           "ViewCommand", "VizCommand", "command_of", "parse_tool", "run_tool"]
 
 
 @dataclass(kw_only=True)
@@ -104,6 +105,73 @@ class VizCommand(ViewFlags, BusFlags):
     """build this scenario's world before declaring ready (skyloop up passes its own)"""
 
 
+@dataclass(kw_only=True)
+class PlotCommand(Settings):
+    """``skyloop plot RUN [RUN ...]``: success/collision curves of training runs."""
+
+    runs: Annotated[tuple[Path, ...], tyro.conf.Positional, tyro.conf.arg(
+        metavar="RUN", help_behavior_hint="(required)")]
+    """run directories"""
+    out: Annotated[Path, tyro.conf.arg(metavar="PNG")] = Path("out/curves.png")
+    """the picture"""
+
+    def validate(self) -> None:
+        super().validate()
+        if not self.runs:
+            raise ValueError("the following arguments are required: RUN")
+
+
+@dataclass(kw_only=True)
+class LogRepairCommand(Settings):
+    """``skyloop log repair LOG``: an indexed, finished copy of a log whose writer died."""
+
+    path: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="LOG")]
+    """the .mcap file or its run directory"""
+    out: Annotated[Path | None, tyro.conf.arg(metavar="DIR", help_behavior_hint=(
+        "(default: beside the source run, named <run>-recovered)"))] = None
+    """where the copy's run directory goes"""
+
+
+@dataclass(kw_only=True)
+class ExperimentRunCommand(Settings):
+    """``skyloop experiment run GRID``: run or continue a grid of training runs."""
+
+    grid: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="GRID")]
+    """grid file (TOML), e.g. experiments/paper_static.toml"""
+    out: Annotated[Path, tyro.conf.arg(metavar="DIR")]
+    """grid directory: one run directory per trial"""
+    max_concurrent: Annotated[int | None, tyro.conf.arg(
+        metavar="N", help_behavior_hint="(default: the cluster's CPUs per trial)")] = None
+    """at most N trials at once"""
+    address: Annotated[str | None, tyro.conf.arg(
+        metavar="RAY", help_behavior_hint="(default: $RAY_ADDRESS, or an embedded Ray on "
+        "this machine)")] = None
+    """an existing Ray cluster"""
+    cpus_per_trial: Annotated[int | None, tyro.conf.arg(
+        metavar="N", help_behavior_hint="(default: 1 for sync trials, 2 for parallel ones: "
+        "learner and collector)")] = None
+    """CPUs Ray reserves for each trial"""
+
+    def validate(self) -> None:
+        super().validate()
+        at_least(self, "max_concurrent", 1)
+        at_least(self, "cpus_per_trial", 1)
+
+
+@dataclass(kw_only=True)
+class ExperimentReportCommand(Settings):
+    """``skyloop experiment report DIR``: REPORT.md, summary.json and figures."""
+
+    dir: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
+    """grid directory written by 'skyloop experiment run'"""
+    eval_episodes: Annotated[int, tyro.conf.arg(metavar="N")] = 0
+    """evaluate each final actor on N held-out episodes"""
+
+    def validate(self) -> None:
+        super().validate()
+        at_least(self, "eval_episodes", 0)
+
+
 # ----------------------------------------------------------------------------- runs
 def run_demo(args: DemoCommand) -> int:
     from skyloop.demo import run_demo as demo
@@ -159,7 +227,43 @@ def run_viz(args: VizCommand) -> int:
     return 0
 
 
-#: name -> (settings dataclass, what runs it, one line of help)
+def run_plot(args: PlotCommand) -> int:
+    from policy.plots import plot_runs
+
+    print(f"wrote {plot_runs(list(args.runs), args.out)}")
+    return 0
+
+
+def run_log_repair(args: LogRepairCommand) -> int:
+    from bus.log import recover_log
+
+    if not args.path.exists():
+        raise FileNotFoundError(f"{args.path}: no such log file or run directory")
+    out, report = recover_log(args.path, args.out)
+    print(f"repaired: {out} ({report.summary()})")
+    return 0
+
+
+def run_experiment(args: ExperimentRunCommand) -> int:
+    from skyloop.experiment.grid import load_grid
+    from skyloop.experiment.run import run_grid
+
+    grid = load_grid(args.grid)  # every error before anything starts
+    status = run_grid(grid, args.out, max_concurrent=args.max_concurrent,
+                      address=args.address, cpus_per_trial=args.cpus_per_trial)
+    return 0 if all(s == "finished" for s in status.values()) else 1
+
+
+def run_experiment_report(args: ExperimentReportCommand) -> int:
+    from skyloop.experiment.report import write_report
+
+    for path in write_report(args.dir, eval_episodes=args.eval_episodes):
+        print(f"wrote {path}")
+    return 0
+
+
+#: name -> (settings dataclass, what runs it, one line of help); a name of two words is
+#: a command of a group (``skyloop experiment run``)
 COMMANDS: dict[str, tuple[type, Callable[[Any], int], str]] = {
     "demo": (DemoCommand, run_demo, "fly a controller through a scenario, print a summary"),
     "render": (RenderCommand, run_render,
@@ -168,16 +272,37 @@ COMMANDS: dict[str, tuple[type, Callable[[Any], int], str]] = {
               "measure speed against peers; prints a table, writes JSON"),
     "view": (ViewCommand, run_view, "show a recorded run in 3D (Rerun)"),
     "viz": (VizCommand, run_viz, "live 3D view node (Rerun) of one vehicle on the bus"),
+    "plot": (PlotCommand, run_plot, "success/collision curves of one or more training runs"),
+    "log repair": (LogRepairCommand, run_log_repair,
+                   "write an indexed, finished copy of a log whose writer died (SIGKILL, "
+                   "power loss)"),
+    "experiment run": (ExperimentRunCommand, run_experiment,
+                       "run or continue a grid (finished trials are skipped)"),
+    "experiment report": (ExperimentReportCommand, run_experiment_report,
+                          "REPORT.md, summary.json and figures of a grid"),
 }
 
 
+def command_of(argv: Sequence[str]) -> tuple[str, list[str]] | None:
+    """``(name, rest)`` when ``argv`` starts with a name of :data:`COMMANDS` (of one
+    word, or two: ``experiment run``), else None."""
+    if len(argv) >= 2 and f"{argv[0]} {argv[1]}" in COMMANDS:
+        return f"{argv[0]} {argv[1]}", list(argv[2:])
+    if argv and argv[0] in COMMANDS:
+        return argv[0], list(argv[1:])
+    return None
+
+
 def parse_tool(argv: Sequence[str]) -> Any:
-    """The settings of ``skyloop NAME ARGS`` (``argv`` = [NAME, *ARGS]); ``--help``
+    """The settings of ``skyloop NAME ARGS`` (``argv`` = [*NAME, *ARGS]); ``--help``
     exits 0, a bad command line exits 2 with one line."""
-    cls, _, description = COMMANDS[argv[0]]
-    return parse(cls, list(argv[1:]), prog=f"skyloop {argv[0]}", description=description)
+    found = command_of(argv)
+    assert found is not None, argv
+    name, rest = found
+    cls, _, description = COMMANDS[name]
+    return parse(cls, rest, prog=f"skyloop {name}", description=description)
 
 
 def run_tool(name: str, argv: Sequence[str]) -> int:
     """``skyloop NAME ARGS``: parse (exit 2 on a bad value), run."""
-    return COMMANDS[name][1](parse_tool([name, *argv]))
+    return COMMANDS[name][1](parse_tool([*name.split(), *argv]))

@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
-from dataclasses import fields
+from dataclasses import MISSING, fields
 from pathlib import Path
 
 import pytest
@@ -47,11 +47,19 @@ FLAGS = {
     "bench": ["--quick", "--json", "--only", "--minutes"],
     "view": ["--vehicle", "--viz", "--scan-every", "--web-port", "--grpc-port"],
     "viz": [*BUS, "--scenario", "--viz", "--scan-every", "--web-port", "--grpc-port"],
+    "plot": ["--out"],
+    "log repair": ["--out"],
+    "experiment run": ["--out", "--max-concurrent", "--address", "--cpus-per-trial"],
+    "experiment report": ["--eval-episodes"],
 }
+POSITIONAL = {"log": "LOG", "runs": "RUN", "path": "LOG", "grid": "GRID", "dir": "DIR"}
 
 
 def parse_any(argv: list[str]):
-    return (parse_node if argv[0] in NODES else parse_tool)(argv)
+    """The settings of ``skyloop NAME ARGS`` (``argv[0]`` may be two words)."""
+    if argv[0] in NODES:
+        return parse_node(argv)
+    return parse_tool([*argv[0].split(), *argv[1:]])
 
 
 def help_entries(text: str) -> dict[str, str]:
@@ -81,7 +89,7 @@ def flag(name: str) -> str:
 def helps() -> dict[str, str]:
     out = {}
     for name in COMMANDS:
-        proc = subprocess.run([sys.executable, "-m", "skyloop", name, "--help"],
+        proc = subprocess.run([sys.executable, "-m", "skyloop", *name.split(), "--help"],
                               capture_output=True, text=True, timeout=120)
         assert proc.returncode == 0 and proc.stderr == "", (name, proc.stderr)
         out[name] = proc.stdout
@@ -95,21 +103,26 @@ def test_every_flag_is_kept_and_help_shows_its_default(helps, name):
     missing = [f for f in FLAGS[name] if f not in entries]
     assert not missing, (name, missing)
     cls = COMMANDS[name][0]
-    positional = {"log"}  # skyloop view LOG
-    assert {flag(f.name) for f in fields(cls) if f.name not in positional} <= set(entries)
+    assert {flag(f.name) for f in fields(cls) if f.name not in POSITIONAL} <= set(entries)
     hints = {"mode": "$SKYLOOP_ZENOH_MODE or peer", "zenoh_config": "$ZENOH_CONFIG",
+             "connect": "$SKYLOOP_ZENOH_CONNECT", "listen": "$SKYLOOP_ZENOH_LISTEN",
              "signing_key_file": "$SKYLOOP_MAVLINK_KEY", "lockstep": "(the default)",
              "takeoff_altitude": "MIS_TAKEOFF_ALT", "episodes": "(default: ",
              "hub": "free loopback port", "viz": "no viewer",
              "policy": "(default: the shipped policy)", "only": "every module but soak",
              "minutes": "(default: 60; --quick: 2)", "vehicle": "(default: every one)",
-             "scenario": "(default: the first episode's)"}
+             "scenario": "(default: the first episode's)", "out": "beside the source run",
+             "max_concurrent": "CPUs per trial", "address": "$RAY_ADDRESS",
+             "cpus_per_trial": "1 for sync trials"}
     for f in fields(cls):
-        if f.name in positional:
-            assert re.search(rf"^ *│? *{f.name.upper()} ", helps[name], re.M), helps[name]
+        if f.name in POSITIONAL:
+            box = helps[name].split("positional arguments", 1)[1].split("╰", 1)[0]
+            assert f"│ {POSITIONAL[f.name]} " in box and "(required)" in box, box
             continue
         entry = entries[flag(f.name)]
-        if f.default == ():  # a repeatable flag: none by default
+        if f.default is MISSING:
+            assert entry.endswith("(required)"), entry
+        elif f.default == ():  # a repeatable flag: none by default
             assert "(repeatable)" in entry, entry
         elif f.name in hints and f.default is None:
             assert hints[f.name] in entry, entry
@@ -171,6 +184,8 @@ BAD = [
     ("bridge", ["--command-timeout", "-1"], "--command-timeout", "-1"),
     ("bridge", ["--param", "MPC_XY_VEL_MAX=abc"], "--param", "abc"),
     ("up", ["--episodes", "-1"], "--episodes", "-1"),
+    ("up", ["--episodes", "x"], "--episodes", "x"),  # int | None: one line too
+    ("policy", ["--takeoff-altitude", "high"], "--takeoff-altitude", "high"),
     ("up", ["--episodes", "0"], "--episodes", "0"),
     ("up", ["--max-restarts", "0"], "--max-restarts", "0"),
     ("up", ["--viz-scan-every", "0"], "--viz-scan-every", "0"),
@@ -188,6 +203,11 @@ BAD = [
     ("view", ["run", "--scan-every", "0"], "--scan-every", "0"),
     ("viz", ["--viz", "window"], "--viz", "window"),
     ("viz", ["--grpc-port", "99999"], "--grpc-port", "99999"),
+    ("experiment run", ["g.toml", "--out", "o", "--max-concurrent", "0"], "--max-concurrent",
+     "0"),
+    ("experiment run", ["g.toml", "--out", "o", "--cpus-per-trial", "x"], "--cpus-per-trial",
+     "x"),
+    ("experiment report", ["d", "--eval-episodes", "-1"], "--eval-episodes", "-1"),
 ]
 
 
@@ -234,6 +254,30 @@ def test_command_lines_give_the_settings_they_say():
                          "--expose"])
     assert (bridge.no_gcs, bridge.params_file, bridge.bind, bridge.expose) == (
         True, "none", "0.0.0.0", True)
+
+
+def test_group_commands_give_the_settings_they_say(capsys):
+    run = parse_any(["experiment run", "experiments/x.toml", "--out", "g", "--max-concurrent",
+                     "2", "--address", "ray://h:10001", "--cpus-per-trial", "1"])
+    assert (run.grid, run.out, run.max_concurrent, run.address, run.cpus_per_trial) == (
+        Path("experiments/x.toml"), Path("g"), 2, "ray://h:10001", 1)
+    report = parse_any(["experiment report", "g", "--eval-episodes", "10"])
+    assert (report.dir, report.eval_episodes) == (Path("g"), 10)
+    assert parse_any(["experiment report", "g"]).eval_episodes == 0
+    repair = parse_any(["log repair", "run/x.mcap", "--out", "fixed"])
+    assert (repair.path, repair.out) == (Path("run/x.mcap"), Path("fixed"))
+    plot = parse_any(["plot", "runs/a", "runs/b", "--out", "c.png"])
+    assert (plot.runs, plot.out) == ((Path("runs/a"), Path("runs/b")), Path("c.png"))
+    for argv, says in ((["plot"], "the following arguments are required: RUN"),
+                       (["log repair"], "the following arguments are required: LOG"),
+                       (["experiment run", "g.toml"], "the following arguments are required")):
+        with pytest.raises(SystemExit) as exit_:
+            parse_any(argv)
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and err.count("\n") == 1 and says in err, err
+    proc = subprocess.run([sys.executable, "-m", "skyloop", "experiment", "--help"],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and "run" in proc.stdout and "report" in proc.stdout
 
 
 def test_tool_command_lines_give_the_settings_they_say():
