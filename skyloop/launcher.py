@@ -315,9 +315,7 @@ def run_up(args: UpCommand) -> int:
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     env.setdefault("MAVLINK20", "1")
-    secure = args.zenoh_config_dir is not None
-    if secure and not args.router:
-        raise ValueError("--zenoh-config-dir needs --router (mutual TLS through the router)")
+    secure = args.zenoh_config_dir is not None  # with --router (UpCommand checks)
     endpoint = args.hub or \
         f"{'tls/localhost' if secure else 'tcp/127.0.0.1'}:{free_port()}"
     ports = {"api": args.api_port, "api_local": args.api_local_port, "gcs": args.gcs_port,

@@ -391,6 +391,9 @@ class UpCommand(SimRules, MavlinkPorts, SecurityFlags, PolicyFlag, ClockFlags, V
     def validate(self) -> None:
         super().validate()
         at_least(self, "episodes", 1)
+        if self.zenoh_config_dir is not None and not self.router:
+            raise ConfigError("zenoh_config_dir", "needs --router (mutual TLS through the "
+                                                  "router)")
         at_least(self, "log_split_episodes", 0)
         at_least(self, "max_restarts", 1)
         at_least(self, "viz_scan_every", 1)

@@ -195,6 +195,7 @@ BAD = [
     ("up", ["--log-compression", "gzip"], "--log-compression", "gzip"),
     ("up", ["--viz", "window"], "--viz", "window"),
     ("up", ["--max-steps", "-300"], "--max-steps", "-300"),
+    ("up", ["--zenoh-config-dir", "certs"], "--zenoh-config-dir", "needs --router"),
     ("demo", ["--episodes", "0"], "--episodes", "0"),
     ("demo", ["--seed", "1.5"], "--seed", "1.5"),
     ("render", ["--seed", "x"], "--seed", "x"),
