@@ -27,7 +27,9 @@ was sent but neither written nor counted (the goal is zero too).
   (TF, markers, path: a few percent of its size), which are left out here.
   ``log_points_per_scan``: mean returns of those scans; ``log_zstd_ratio``: zstd size /
   uncompressed size; ``log_write_ms_per_scan_<compression>``: CPU time of this process
-  per step to write them (median of 3 passes).
+  per step to write them (median of 3 passes). zstd is written at ``bus.log.ZSTD_LEVEL``
+  (``log_zstd_level``); ``log_*_zstd_level3`` are the same at zstandard's default level 3
+  (the level before 2026-12-03), measured in the same run.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from bus import keys
+from bus import log as log_module
 from bus import messages as m
 from bus.log import EpisodeLogWriter
 from bus.node import Bus
@@ -129,6 +132,19 @@ def log_sizes(episodes: list[dict]) -> dict:
                 cpus.append(cpu)
             rows[f"log_mb_per_episode_{compression}"] = sizes[0] / 1e6 / len(episodes)
             rows[f"log_write_ms_per_scan_{compression}"] = statistics.median(cpus) * 1e3 / scans
+        # zstd at zstandard's default level 3 (the level before 2026-12-03), as a peer
+        sizes, cpus = [], []
+        level, log_module.ZSTD_LEVEL = log_module.ZSTD_LEVEL, 3
+        try:
+            for k in range(3):
+                size, cpu = write_log(f"{tmp}/level3-{k}", episodes, "zstd")
+                sizes.append(size)
+                cpus.append(cpu)
+        finally:
+            log_module.ZSTD_LEVEL = level
+        rows["log_mb_per_episode_zstd_level3"] = sizes[0] / 1e6 / len(episodes)
+        rows["log_write_ms_per_scan_zstd_level3"] = statistics.median(cpus) * 1e3 / scans
+    rows["log_zstd_level"] = log_module.ZSTD_LEVEL
     rows["log_zstd_ratio"] = rows["log_mb_per_episode_zstd"] / rows["log_mb_per_episode_none"]
     return rows
 

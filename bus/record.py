@@ -1,11 +1,19 @@
 """The recorder: every message under ``skyloop/**`` (or one vehicle's) into the MCAP log.
 
-The Zenoh callback only copies the payload into a bounded queue with its receive time
-(it never blocks: a full queue is a *counted* drop); one writer thread validates each
-payload against its topic's type (an undecodable payload is counted, not written, so
-the log stays readable by every tool) and appends it to the
+Zenoh's receive thread puts each sample into the subscriber's channel (no Python runs
+there, no Python thread wakes per message); a receiving thread takes what the channel
+holds every ``poll_s`` (:data:`POLL_S`, 5 ms) and copies the payloads, with the wall
+time it took them (the log time: at most ``poll_s`` after arrival, plus scheduling),
+into a bounded queue (a full queue is a *counted* drop; the channel itself holds up to
+``max(queue_size, 64)`` samples and would hold Zenoh's receive back only if the
+receiving thread stalled that long); one writer thread, woken once per batch, validates
+each payload against its topic's type (an undecodable payload is counted, not written,
+so the log stays readable by every tool) and appends it to the
 :class:`~bus.log.EpisodeLogWriter` under the ROS 2 topic ``/skyloop/<vehicle>/<topic>``.
-Stopping undeclares the subscriber, drains the queue, then finishes the file.
+Stopping undeclares the subscriber, takes what the channel still holds, drains the
+queue, then finishes the file. Measured in a lockstep stack (issue 11, "Speed";
+benchmarks/RESULTS.md 2026-12-03): the recorder's Python threads woke 1.4 times a step
+instead of 7.3 (one Python callback and one writer wake-up per message before).
 
 Episode ends are held back briefly: an episode's messages come from several processes
 over separate Zenoh links, so the sim's END can overtake the last observation or
@@ -31,12 +39,13 @@ the launcher's stop grace is 3 s for every node), then the view closes its worke
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
-import queue
 import signal
 import sys
 import threading
 import time
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,6 +63,9 @@ from bus.session import SessionConfig, open_session
 
 log = logging.getLogger("skyloop.record")
 _STOP = object()
+#: How often the receiving thread takes what Zenoh's channel holds (s). Taking in batches
+#: (no Python callback per message) keeps the recorder's wake-ups off the stack's hops.
+POLL_S = 0.005
 #: The run's time convention, in the MCAP run metadata (docs/interfaces.md, "Logs in 3D").
 TIME_METADATA = {
     "log_time": "wall clock when the recorder received the message (ns since the epoch)",
@@ -80,13 +92,17 @@ class Recorder:
     def __init__(self, session: zenoh.Session, writer: EpisodeLogWriter,
                  vehicle: str | None = None, queue_size: int = 512,
                  validate: bool = True, end_grace_s: float = 0.25,
-                 view: RosView | None = None, world_wait_s: float = 1.0) -> None:
+                 view: RosView | None = None, world_wait_s: float = 1.0,
+                 poll_s: float = POLL_S) -> None:
         self.writer = writer
         self.end_grace_s = end_grace_s
         self.validate = validate
         self.view = view
         self.world_wait_s = world_wait_s
-        self._q: queue.Queue[Any] = queue.Queue(maxsize=queue_size)
+        self.poll_s = poll_s
+        self.queue_size = queue_size
+        self._q: deque[Any] = deque()  # taken by the writer thread; bounded by _take
+        self._cv = threading.Condition()
         self._lock = threading.Lock()
         self._counts = dict.fromkeys(("received", "written", "dropped", "undecodable",
                                       "unknown_topic", "write_errors", "derived",
@@ -96,27 +112,65 @@ class Recorder:
         self._thread = threading.Thread(target=self._run, name="skyloop-record", daemon=True)
         self._thread.start()
         self.key_expr = key_all(vehicle)
+        self._capacity = max(queue_size, 64)  # of Zenoh's channel
         self._sub: zenoh.Subscriber | None = session.declare_subscriber(
-            self.key_expr, self._on_sample)
+            self.key_expr, zenoh.handlers.FifoChannel(self._capacity))
+        self._samples = self._sub.handler
+        self._rx_stop = threading.Event()
+        self._rx = threading.Thread(target=self._take_run, name="skyloop-record-rx",
+                                    daemon=True)
+        self._rx.start()
         self._stopped = False
 
     def _count(self, name: str, n: int = 1) -> None:
         with self._lock:
             self._counts[name] += n
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        """Zenoh thread: copy and enqueue, never block, never raise."""
+    def _take_run(self) -> None:
+        """The receiving thread: every ``poll_s``, take what Zenoh's channel holds (at
+        once again while a take stops at its limit: the channel is filling faster)."""
+        while not self._rx_stop.is_set():
+            if not self._take():
+                self._rx_stop.wait(self.poll_s)
+        while self._take():  # what came before the subscriber was undeclared
+            pass
+
+    def _take(self) -> bool:
+        """Take the samples waiting in Zenoh's channel, at most a channel's capacity:
+        copy those the writer's queue has room for, with the time they were taken, into
+        it, and count the rest dropped (not copied). True if it stopped at the limit;
+        never raises."""
+        got: list[tuple[str, bytes, int]] = []
+        dropped, first_dropped, taken = 0, "", 0
+        with self._cv:
+            room = max(0, self.queue_size - len(self._q))
         try:
-            item = (str(sample.key_expr), sample.payload.to_bytes(), time.time_ns())
-            self._count("received")
-            self._q.put_nowait(item)
-        except queue.Full:
-            self._count("dropped")
+            try_recv = self._samples.try_recv
+            while taken < self._capacity and (sample := try_recv()) is not None:
+                taken += 1
+                if len(got) < room:
+                    got.append((str(sample.key_expr), sample.payload.to_bytes(),
+                                time.time_ns()))
+                else:
+                    dropped += 1
+                    first_dropped = first_dropped or str(sample.key_expr)
+        except zenoh.ZError:  # empty and closed: the subscriber is undeclared
+            pass
+        except Exception:  # noqa: BLE001 - keep receiving
+            dropped += 1
+            self._drop_log(logging.ERROR, "recorder receive failed", exc_info=True)
+        if got:
+            with self._cv:
+                self._q.extend(got)
+                self._cv.notify()
+        if got or dropped:
+            with self._lock:
+                self._counts["received"] += taken
+                self._counts["dropped"] += dropped
+        if first_dropped:
             self._drop_log(logging.WARNING, "recorder queue full: message on %s dropped",
-                           item[0])
-        except Exception:  # noqa: BLE001 - never raise into Zenoh
-            self._count("dropped")
-            self._drop_log(logging.ERROR, "recorder callback failed", exc_info=True)
+                           first_dropped)
+        return taken >= self._capacity
 
     def _run(self) -> None:
         # vehicle -> (held END, write-by time, messages that go after it)
@@ -127,13 +181,13 @@ class Recorder:
             for it in (held, *after):
                 self._write(it)
 
+        q, cv = self._q, self._cv
         while True:
-            timeout = None if not pending else \
-                max(0.0, min(p[1] for p in pending.values()) - time.monotonic())
-            try:
-                item = self._q.get(timeout=timeout)
-            except queue.Empty:
-                item = None
+            with cv:
+                if not q:
+                    cv.wait(None if not pending else
+                            max(0.0, min(p[1] for p in pending.values()) - time.monotonic()))
+                item = q.popleft() if q else None
             now = time.monotonic()
             for vehicle in [v for v, p in pending.items() if p[1] <= now]:
                 release(vehicle)
@@ -161,13 +215,12 @@ class Recorder:
 
     def _write(self, item: tuple[str, bytes, int]) -> None:
         key_expr, data, t_ns = item
-        try:
-            vehicle, topic = parse_key(key_expr)
-            kind = msgtype(topic)
-        except (ValueError, KeyError):
+        parsed = _parsed(key_expr)
+        if parsed is None:
             self._count("unknown_topic")
             self._bad_log(logging.WARNING, "not a skyloop topic, not recorded: %s", key_expr)
             return
+        vehicle, topic, kind = parsed
         if self.validate or self.view is not None:
             try:
                 msg = decode(kind, data)
@@ -226,7 +279,7 @@ class Recorder:
             out = dict(self._counts)
         if self.view is not None:
             out.update(self.view.counts_snapshot())
-        out["queued"] = self._q.qsize()
+        out["queued"] = len(self._q)
         out["episodes_started"] = self.writer.episodes_started
         out["episodes_ended"] = self.writer.episodes_ended
         return out
@@ -247,7 +300,11 @@ class Recorder:
             sub, self._sub = self._sub, None
             if sub is not None:
                 sub.undeclare()
-            self._q.put(_STOP)
+            self._rx_stop.set()
+            self._rx.join(timeout)
+            with self._cv:
+                self._q.append(_STOP)  # after everything taken, never dropped
+                self._cv.notify()
             self._thread.join(timeout)
             if self._thread.is_alive():
                 log.error("recorder writer thread did not finish within %.0f s", timeout)
@@ -258,13 +315,25 @@ class Recorder:
         return self.counters()
 
 
-def _episode_event(key_expr: str, data: bytes) -> tuple[str, int] | None:
-    """(vehicle, START/END) if this is an episode event that decodes, else None."""
+@functools.lru_cache(maxsize=1024)
+def _parsed(key_expr: str) -> tuple[str, str, str] | None:
+    """(vehicle, topic, message type) of a skyloop key, None if it is not one (a run
+    has a few keys: cached)."""
     try:
         vehicle, topic = parse_key(key_expr)
-        if topic != keys.EPISODE:
-            return None
-        event = int(decode(msgtype(topic), data).event)
+        return vehicle, topic, msgtype(topic)
+    except (ValueError, KeyError):
+        return None
+
+
+def _episode_event(key_expr: str, data: bytes) -> tuple[str, int] | None:
+    """(vehicle, START/END) if this is an episode event that decodes, else None."""
+    parsed = _parsed(key_expr)
+    if parsed is None or parsed[1] != keys.EPISODE:
+        return None
+    vehicle = parsed[0]
+    try:
+        event = int(decode(parsed[2], data).event)
     except Exception:  # noqa: BLE001 - not an event; _write counts what is wrong
         return None
     return (vehicle, event) if event in (START, END) else None
@@ -277,11 +346,10 @@ _STEP_TOPICS = frozenset((keys.CLOCK, keys.ODOM, keys.TRUTH, keys.LIDAR_POINTS,
 def _step_topic(key_expr: str) -> tuple[str | None, bool]:
     """(vehicle, whether the topic carries an episode's steps) of a key, (None, False)
     for what does not parse."""
-    try:
-        vehicle, topic = parse_key(key_expr)
-    except (ValueError, KeyError):
+    parsed = _parsed(key_expr)
+    if parsed is None:
         return None, False
-    return vehicle, topic in _STEP_TOPICS
+    return parsed[0], parsed[1] in _STEP_TOPICS
 
 
 def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,

@@ -109,6 +109,27 @@ def test_default_chunks_are_zstd_and_read_back_exactly(tmp_path):
     assert len(clouds) == STEPS
     np.testing.assert_array_equal(m.points_from_pointcloud(clouds[-1].decode()), PTS + 1)
 
+def test_zstd_chunks_are_written_at_the_log_level(tmp_path):
+    """mcap's writer compresses its chunks with ``zstandard.compress`` (level 3, no
+    option); ``bus.log`` stands in for it at ``ZSTD_LEVEL`` (issue 11, "Speed")."""
+    import mcap.writer
+    import zstandard
+
+    from bus import log
+
+    assert isinstance(mcap.writer.zstandard, log._McapZstd)
+    data = m.encode(m.pointcloud(PTS, 1.0)) * 20
+    assert mcap.writer.zstandard.compress(data) == \
+        zstandard.ZstdCompressor(level=log.ZSTD_LEVEL).compress(data)
+    with EpisodeLogWriter(tmp_path, "level") as w:
+        write_episode(w, 0, 1_000)
+    with open(w.path, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert {c.compression for c in chunks} == {"zstd"}
+    eps, rep = read_episodes(w.dir)
+    assert rep.clean and [e.seen for e in eps] == [PER_EPISODE]
+
+
 def test_split_every_n_episodes_never_splits_an_episode(tmp_path):
     """``split_episodes=2``: 5 episodes in 3 files (2, 2, 1), each a finished MCAP of
     whole episodes; metadata.yaml lists the three and rosbags reads the directory as

@@ -164,6 +164,42 @@ class FakeScene:
         return ico.vertices, ico.faces
 
 
+def test_view_writes_the_bytes_of_the_message_objects():
+    """The view writes ``/tf``, the path and the icosahedron as CDR directly (issue 11,
+    "Speed"): the same bytes as ``m.encode`` of the message objects, for occupied, free
+    and partly occupied faces, with and without the edges, odd stamps and radii, frames
+    of other lengths (CDR alignment), and paths whose poses are written once."""
+    from bus import ros_view as rv
+
+    vertices, faces = FakeScene().icosahedron()
+    rng = np.random.default_rng(11)
+    for trial in range(60):
+        values = rng.uniform(-0.2, 1.3, 32) * (rng.uniform(size=32) < trial / 60)
+        radius, stamp = float(rng.uniform(0.3, 6.0)), float(rng.uniform(0.0, 1e5))
+        edges = trial % 3 == 0
+        assert rv.icosahedron_cdr(vertices, faces, values, radius, stamp, edges=edges) == \
+            m.encode(rv.icosahedron_markers(vertices, faces, values, radius, stamp,
+                                            edges=edges))
+    view = rv.RosView(None, path_every=3)
+    start = m.episode_start(0, 1, (0, 0, 1), (9, 0, 1), 0.5)
+    assert view.derive("uav1", "episode", start, 0)
+    poses = []
+    for k, frame in enumerate(["world"] * 7 + ["w", "odom_frame"] * 2):
+        pos, q = rng.normal(size=3), rng.normal(size=4)
+        truth = m.odometry(pos, rng.normal(size=3), q, 0.5 + 0.1 * k, frame_id=frame,
+                           child_frame_id="base_link" if k % 2 else "body")
+        out = dict((topic, data) for topic, _, data in view.derive("uav1", "truth", truth, 0))
+        stamp = m.seconds(truth.header.stamp)
+        tf = rv.transform(frame, truth.child_frame_id, stamp, pos, q)
+        assert out[rv.TF] == m.encode(rv.tf_message([tf]))
+        poses.append(m.PoseStamped(header=tf.header, pose=truth.pose.pose))
+        if k % 3 == 0:
+            assert out[rv.path_topic("uav1")] == m.encode(
+                rv._Path(header=poses[-1].header, poses=list(poses)))
+        else:
+            assert rv.path_topic("uav1") not in out
+
+
 def test_recorder_view_in_every_file_of_a_split_run(tmp_path):
     """Through a real bus into a log split every episode: each file begins with
     /tf_static and holds the world and the goal (latched, as a file is opened alone);
