@@ -16,7 +16,7 @@ from scipy import stats
 
 from policy.train import CSV_FIELDS, TrainConfig, Trainer
 from skyloop.experiment.grid import load_grid
-from skyloop.experiment.report import t_interval, trailing_mean, write_report
+from skyloop.experiment.report import aggregate, t_interval, trailing_mean, write_report
 
 GRID = """
 name = "synthetic"
@@ -124,6 +124,11 @@ def test_window_and_interval_helpers():
     assert t_interval([0.4]) == (0.4, None, None)  # one seed: undefined, no crash
     assert t_interval([])[1:] == (None, None)
     assert t_interval([0.3, 0.3]) == (0.3, 0.3, 0.3)
+    # two seeds' success rates: the t-interval passes 100%; a rate's is clipped to [0, 1]
+    free, rate = aggregate({0: 0.832, 1: 0.906}), aggregate({0: 0.832, 1: 0.906}, rate=True)
+    assert free["hi"] > 1.0 and free["lo"] < 0.5
+    assert (rate["lo"], rate["hi"]) == (pytest.approx(free["lo"]), 1.0)
+    assert aggregate({0: 0.01, 1: 0.09}, rate=True)["lo"] == 0.0
 
 
 def test_report_numbers_are_the_csvs(tmp_path):

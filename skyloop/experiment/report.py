@@ -249,11 +249,15 @@ def t_interval(values: Iterable[float], confidence: float = 0.95
     return mean, float(lo), float(hi)
 
 
-def aggregate(per_seed: dict[int, Any]) -> dict[str, Any]:
-    """Mean over seeds, its 95% t-interval and the per-seed values (finite ones only)."""
+def aggregate(per_seed: dict[int, Any], rate: bool = False) -> dict[str, Any]:
+    """Mean over seeds, its 95% t-interval and the per-seed values (finite ones only).
+    For a ``rate`` the interval is clipped to [0, 1] (with two or three seeds the
+    t-interval of a success rate easily reaches past 100%)."""
     seeds = [s for s, v in per_seed.items() if _finite(v)]
     values = [float(per_seed[s]) for s in seeds]
     mean, lo, hi = t_interval(values)
+    if rate and lo is not None and hi is not None:
+        lo, hi = max(lo, 0.0), min(hi, 1.0)
     return {"mean": mean, "lo": lo, "hi": hi, "n": len(values), "seeds": seeds,
             "values": values}
 
@@ -443,6 +447,8 @@ def _eval_fields(ev: dict | None) -> dict[str, Any]:
 TRIAL_METRICS = ("success_last500", "collision_last500", "peak_success500", "return_last100",
                  "learning_return_last100", "env_steps", "episodes")
 EVAL_METRICS = ("eval_success", "eval_collision", "eval_return")
+RATES = ("success_last500", "collision_last500", "peak_success500", "eval_success",
+         "eval_collision")  # fractions in [0, 1]
 
 
 def trial_record(td: TrialData) -> dict[str, Any]:
@@ -471,7 +477,7 @@ def method_entry(task: str, method: str, trials: list[TrialData]) -> dict[str, A
         "episodes_planned": trials[0].config.episodes,
     }
     for key in (*TRIAL_METRICS, "wall_s", *EVAL_METRICS):
-        entry[key] = aggregate({s: r[key] for s, r in recs.items()})
+        entry[key] = aggregate({s: r[key] for s, r in recs.items()}, rate=key in RATES)
     terms = [t.metrics["reward_terms"] for t in started if t.metrics["reward_terms"]]
     if terms:
         means = {k: float(np.mean([d[k] for d in terms if k in d])) for k in terms[0]}
