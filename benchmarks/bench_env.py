@@ -26,8 +26,8 @@ import subprocess
 import time
 from pathlib import Path
 
-from policy.env import UavNavEnv
-from policy.scripted import StraightLineController
+from policy.algorithms.scripted import StraightLineController
+from policy.training.env import UavNavEnv
 
 PEER_PYTHON = Path(__file__).resolve().parent.parent / ".venv-peers" / "bin" / "python"
 

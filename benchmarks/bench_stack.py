@@ -73,9 +73,9 @@ def env_steps_per_s(episodes: int) -> float:
     """The in-process env with the shipped policy on the same seeds."""
     import torch
 
-    from policy.env import UavNavEnv
-    from policy.evaluate import make_controller
-    from policy.rollout import run_episode
+    from policy.training.env import UavNavEnv
+    from policy.training.evaluate import make_controller
+    from policy.training.rollout import run_episode
 
     torch.set_num_threads(1)
     controller, env = make_controller(None), UavNavEnv(scenario="valley")

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from policy.replay import ReplayBuffer
-from policy.td3 import TD3, TD3Config
+from policy.algorithms.replay import ReplayBuffer
+from policy.algorithms.td3 import TD3, TD3Config
 
 STATE_DIM, ACTION_DIM, MAX_ACTION, BATCH, HIDDEN = 105, 4, 2.0, 100, (400, 300)
 

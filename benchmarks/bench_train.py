@@ -4,12 +4,12 @@ Three rows in the same run, the same env, network sizes (400-300), batch (100) a
 gradient step per env step after the same warm-up:
 
 - ``train_env_steps_per_s``: ``skyloop train`` as it runs by default (a collector process
-  beside the learner, ``policy.collector``);
+  beside the learner, ``policy.training.collector``);
 - ``train_bf16_env_steps_per_s``: the same with ``--precision bf16`` (mixed precision);
 - ``train_sync_env_steps_per_s``: ``skyloop train --sync`` (env and learner in turn);
 - ``sb3_train_env_steps_per_s``: Stable-Baselines3's ``TD3.learn()`` on the same env
   (``train_freq=1, gradient_steps=1``), with denormals flushed as in our trainer
-  (``policy.td3.flush_denormals``) so that both get the same machine setting.
+  (``policy.algorithms.td3.flush_denormals``) so that both get the same machine setting.
 
 Each row times ``steps`` env steps after ``warmup`` steps (random actions, no updates,
 then a few hundred updated steps so every loop is at speed); the rows are interleaved
@@ -34,10 +34,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from policy.collector import Collector
-from policy.env import UavNavEnv
-from policy.td3 import explore, flush_denormals
-from policy.train import TrainConfig, Trainer, episode_seed
+from policy.algorithms.td3 import explore, flush_denormals
+from policy.training.collector import Collector
+from policy.training.env import UavNavEnv
+from policy.training.train import TrainConfig, Trainer, episode_seed
 
 START, SETTLE = 1000, 300  # random steps before updates; updated steps before timing
 
@@ -93,7 +93,7 @@ def _sb3(steps: int, seed: int) -> float | None:
         train_freq=1, gradient_steps=1, action_noise=NormalActionNoise(np.zeros(4),
                                                                         0.2 * np.ones(4)),
         device="cpu", seed=seed, verbose=0)
-    with flush_denormals():  # the setting our trainer runs with (policy.td3)
+    with flush_denormals():  # the setting our trainer runs with (policy.algorithms.td3)
         model.learn(total_timesteps=START + SETTLE + steps, callback=_Clock())
     (t0, s0), (t1, s1) = marks["first"], marks["last"]
     return (s1 - s0) / (t1 - t0)
@@ -101,7 +101,7 @@ def _sb3(steps: int, seed: int) -> float | None:
 
 def _collector(n_envs: int, steps: int) -> float:
     """Env steps/s of the collector alone (actor + noise acting, no learner)."""
-    from policy.networks import Actor
+    from policy.algorithms.networks import Actor
 
     actor = Actor().requires_grad_(False)
 

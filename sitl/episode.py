@@ -1,6 +1,6 @@
 """The simulator side of one episode: world, vehicle, LiDAR and collision, seeded.
 
-This is the piece the in-process env (``policy.env``) and the simulator node share, so
+This is the piece the in-process env (``policy.training.env``) and the simulator node share, so
 that an episode flown through the process graph in lockstep reproduces the same
 episode in the env: same seed -> same start, goal, initial yaw, sensor noise; same
 setpoints -> same trajectory.

@@ -35,7 +35,7 @@ the commander is in OFFBOARD before go, the node waits (nothing answers steps ye
   without seeded goals. Outside an episode (before the first goal, after each one) the
   node flies control steps as in the ground phase (publishing only the status and the
   estimated odometry, stamped with the standing stack time; the policy streams a hold
-  in OFFBOARD, see ``policy/node.py``) until a goal comes;
+  in OFFBOARD, see ``policy/nodes/node.py``) until a goal comes;
   after a collision the vehicle is put on the ground where it fell, disarmed.
 * A goal on ``skyloop/<vehicle>/goal`` (PoseStamped, world ENU) replaces the current
   one: the running episode ends as ``aborted`` and the next starts where the vehicle is,

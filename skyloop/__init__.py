@@ -1,7 +1,7 @@
 """skyloop: a software-in-the-loop drone stack.
 
 Importing this package registers the Gymnasium environment ``skyloop/UavNav-v0``
-(the in-process env of :mod:`policy.env`), so ``gymnasium.make("skyloop/UavNav-v0")``
+(the in-process env of :mod:`policy.training.env`), so ``gymnasium.make("skyloop/UavNav-v0")``
 works after ``import skyloop``.
 
 Where nothing imported skyloop (a fresh interpreter, the worker processes of
@@ -38,5 +38,5 @@ except PackageNotFoundError:  # running from a tree that was never installed
 ENV_ID = "skyloop/UavNav-v0"
 
 if ENV_ID not in gymnasium.registry:  # once, however skyloop came to be imported
-    gymnasium.register(id=ENV_ID, entry_point="policy.env:UavNavEnv",
+    gymnasium.register(id=ENV_ID, entry_point="policy.training.env:UavNavEnv",
                        max_episode_steps=TASK.max_steps)

@@ -28,7 +28,7 @@ def _cmd_health(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from policy.evaluate import EvalConfig, evaluate, format_summary
+    from policy.training.evaluate import EvalConfig, evaluate, format_summary
     from skyloop.dataclass_cli import parse
 
     c = parse(EvalConfig, args.rest, prog="skyloop eval", description=EVAL_HELP)

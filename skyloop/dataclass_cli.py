@@ -43,7 +43,7 @@ def _flags(argument: Any) -> str:
 
 def _value_error(message: str) -> str:
     """A dataclass's ``ValueError`` message as argparse says it: ``--flag: problem``
-    (``policy.settings.ConfigError``) becomes ``argument --flag: problem``."""
+    (``policy.training.settings.ConfigError``) becomes ``argument --flag: problem``."""
     return f"argument {message}" if _FLAG_FIRST.match(message) else message
 
 
@@ -101,7 +101,7 @@ def parse(cls: type[T], argv: Sequence[str], prog: str, description: str) -> T:
     """``cls`` from ``argv`` (tyro; booleans that default to False are plain flags,
     ``--sync``). ``--help`` prints and exits 0; a bad command line prints argparse's
     one line naming the flag and exits 2 (``SystemExit``). A ``ValueError`` the dataclass
-    raises whose message starts ``--flag: `` (``policy.settings.ConfigError``) prints as
+    raises whose message starts ``--flag: `` (``policy.training.settings.ConfigError``) prints as
     argparse's ``argument --flag: ...``."""
     try:
         with _hook():

@@ -1,7 +1,7 @@
 """``skyloop demo``: fly the shipped policy through a scenario in the in-process env.
 
 It prints one line per episode and a summary, flies the scripted straight-line
-controller (:mod:`policy.scripted`) on the same seeds for comparison, and writes a
+controller (:mod:`policy.algorithms.scripted`) on the same seeds for comparison, and writes a
 picture of every episode's path. (The full process graph over Zenoh and MAVLink
 replaces the in-process env here once ``skyloop up`` lands.)
 """
@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from policy.env import UavNavEnv
-from policy.evaluate import make_controller
-from policy.rollout import run_episodes, summarize
-from policy.scripted import StraightLineController
+from policy.algorithms.scripted import StraightLineController
+from policy.training.env import UavNavEnv
+from policy.training.evaluate import make_controller
+from policy.training.rollout import run_episodes, summarize
 
 
 def run_demo(scenario: str, episodes: int, seed: int, out_dir: Path,

@@ -33,7 +33,7 @@ from typing import Annotated
 
 import tyro
 
-from policy.settings import ConfigError
+from policy.training.settings import ConfigError
 from skyloop.settings_base import Repeated, VehicleFlag, bare_flag, positive
 
 ESTABLISHED, LISTEN = "01", "0A"

@@ -63,7 +63,7 @@ from bus.session import SessionConfig
 from skyloop.signals import Stopped, stop_on_sigterm
 from skyloop.stack_settings import UpCommand
 
-# The lines the nodes print (sitl.node / policy.node; not imported: --help stays light);
+# The lines the nodes print (sitl.node / policy.nodes.node; not imported: --help stays light);
 # the READY lines are for people reading the output: readiness comes over the bus.
 EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "

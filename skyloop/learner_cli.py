@@ -1,8 +1,8 @@
 """``skyloop learner``: the actor-learner's command line, generated from
-:class:`policy.learner.LearnerConfig` with tyro (``skyloop.dataclass_cli``), so each
+:class:`policy.nodes.learner.LearnerConfig` with tyro (``skyloop.dataclass_cli``), so each
 default lives once, in the dataclass, and ``--help`` shows it with the choices; the
 Zenoh flags are the nodes' (``skyloop.stack_settings.ZenohFlags``). The node,
-:mod:`policy.learner_node`, is imported only when the command runs.
+:mod:`policy.nodes.learner_node`, is imported only when the command runs.
 
 Example: two vehicles' stacks (``skyloop sim/perception/bridge/policy --vehicle uav1``
 and ``uav2``, distinct MAVLink ports) and::
@@ -24,7 +24,7 @@ from typing import Annotated
 
 import tyro
 
-from policy.learner import LearnerConfig
+from policy.nodes.learner import LearnerConfig
 from skyloop.dataclass_cli import parse
 from skyloop.stack_settings import ZenohFlags
 
@@ -40,7 +40,7 @@ class LearnerCommand(ZenohFlags):
     the Zenoh session."""
 
     config: Annotated[LearnerConfig, tyro.conf.OmitArgPrefixes, tyro.conf.arg(
-        name="learner", help="the learner (policy.learner.LearnerConfig)")] = field(
+        name="learner", help="the learner (policy.nodes.learner.LearnerConfig)")] = field(
         default_factory=LearnerConfig)
     out: Annotated[Path, tyro.conf.arg(metavar="DIR")]
     """run directory (checkpoint, actor.pt)"""
@@ -56,7 +56,7 @@ def parse_learner(argv: Sequence[str]) -> LearnerCommand:
 def run_learner(args: LearnerCommand) -> int:
     from bus.node import Bus
     from bus.session import SessionConfig
-    from policy.learner_node import Learner
+    from policy.nodes.learner_node import Learner
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import tyro
 
-from policy.settings import ConfigError
+from policy.training.settings import ConfigError
 
 __all__ = ["Repeated", "Settings", "VehicleFlag", "at_least", "bare_flag", "port",
            "positive"]

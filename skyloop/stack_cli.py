@@ -132,7 +132,7 @@ def _config_or_exit(build: Any, args: Any, name: str) -> Any:
 
 
 def cmd_policy(args: PolicyCommand) -> int:
-    from policy.node import READY_LINE, PolicyNode
+    from policy.nodes.node import READY_LINE, PolicyNode
 
     if args.policy == "none":
         print("skyloop policy: --policy none: nothing to fly", file=sys.stderr)
@@ -140,7 +140,7 @@ def cmd_policy(args: PolicyCommand) -> int:
     client_config = _config_or_exit(policy_client_config, args, "policy")
     import torch
 
-    from policy.evaluate import make_controller
+    from policy.training.evaluate import make_controller
 
     torch.set_num_threads(1)
     controller = make_controller(args.actor)
@@ -154,7 +154,7 @@ def cmd_policy(args: PolicyCommand) -> int:
     weights = node = None
     try:
         if args.weights_from_bus:
-            from policy.weights import WeightsFollower
+            from policy.nodes.weights import WeightsFollower
 
             weights = WeightsFollower(bus, args.vehicle, controller,
                                       emit=lambda line: print(line, flush=True))

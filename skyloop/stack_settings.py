@@ -36,7 +36,7 @@ from bus.task import TASK
 from mavlink_bridge.offboard_client import OffboardClientConfig
 from mavlink_bridge.security import KEY_ENV
 from mavlink_bridge.vehicle_link import VehicleLinkConfig
-from policy.settings import ConfigError
+from policy.training.settings import ConfigError
 from skyloop.settings_base import (
     Repeated,
     Settings,
@@ -244,7 +244,7 @@ class PolicyFlag(Settings):
 
     @property
     def actor(self) -> str | None:
-        """What ``policy.evaluate.make_controller`` takes: None for the shipped actor."""
+        """What ``policy.training.evaluate.make_controller`` takes: None for the shipped actor."""
         return None if self.policy == "shipped" else self.policy
 
 

@@ -15,7 +15,7 @@ from typing import Annotated, Any
 
 import tyro
 
-from policy.settings import ConfigError
+from policy.training.settings import ConfigError
 from skyloop.dataclass_cli import parse
 from skyloop.stack_settings import (
     DEMO_SEED,
@@ -228,7 +228,7 @@ def run_viz(args: VizCommand) -> int:
 
 
 def run_plot(args: PlotCommand) -> int:
-    from policy.plots import plot_runs
+    from policy.training.plots import plot_runs
 
     print(f"wrote {plot_runs(list(args.runs), args.out)}")
     return 0

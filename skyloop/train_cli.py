@@ -1,4 +1,4 @@
-"""``skyloop train``: its options are generated from ``policy.train.TrainConfig`` with tyro
+"""``skyloop train``: its options are generated from ``policy.training.train.TrainConfig`` with tyro
 (``skyloop.dataclass_cli``), so each default lives once, in the dataclass, and
 ``--help`` shows it with the choices. The few options that are not the run's config
 (where it goes, resuming, learning from logs) are ``TrainCommand``'s own fields."""
@@ -13,17 +13,17 @@ from typing import Annotated
 
 import tyro
 
-from policy.offline import UPDATES
-from policy.settings import ConfigError
-from policy.train import TrainConfig
+from policy.logs.offline import UPDATES
+from policy.training.settings import ConfigError
+from policy.training.train import TrainConfig
 from skyloop.dataclass_cli import parse
 
 __all__ = ["TrainCommand", "main", "parse_train", "run_train"]
 
-DESCRIPTION = ("Train TD3/DDPG with a goal reward in the in-process env (policy.train), "
-               "or learn offline from episode logs with --from-logs (policy.offline).")
+DESCRIPTION = ("Train TD3/DDPG with a goal reward in the in-process env (policy.training.train), "
+               "or learn offline from episode logs with --from-logs (policy.logs.offline).")
 
-RUN_HELP = "the run (policy.train.TrainConfig; grid files set the same fields by name)"
+RUN_HELP = "the run (policy.training.train.TrainConfig; grid files set the same fields by name)"
 
 
 @dataclass(kw_only=True)
@@ -61,14 +61,14 @@ def parse_train(argv: Sequence[str]) -> TrainCommand:
 def run_train(command: TrainCommand) -> int:
     """Train (or learn from logs), print the summary as JSON."""
     if command.from_logs is not None:
-        from policy.offline import train_from_logs
+        from policy.logs.offline import train_from_logs
 
         summary = train_from_logs(list(command.from_logs), command.out,
                                   reward=command.config.reward, updates=command.updates,
                                   seed=command.config.seed, bc=command.bc,
                                   init_actor=command.init_actor)
     else:
-        from policy.train import Trainer
+        from policy.training.train import Trainer
 
         summary = Trainer(command.config, command.out).run(resume=command.resume)
     print(json.dumps(summary, indent=2))

@@ -150,7 +150,7 @@ class RunView:
 
         from bus.ros_scene import SitlScene
         from bus.ros_view import fan_triangles
-        from policy.rewards import RewardConfig
+        from policy.algorithms.rewards import RewardConfig
 
         self.rr, self.rec, self.scan_every = rr, rec, max(1, int(scan_every))
         self.step = 0
@@ -264,7 +264,7 @@ class RunView:
             outcome = {1: "success", 2: "collision", 3: "timeout", 4: "aborted"}.get(
                 msg.outcome, "?")
             if msg.outcome == 2:
-                from policy.rewards import collision_reward
+                from policy.algorithms.rewards import collision_reward
 
                 self.rec.log("plots/reward", rr.Scalars(collision_reward(self.reward_config)[0]))
             self.rec.log("events", rr.TextLog(
@@ -317,7 +317,7 @@ class RunView:
         from bus import ros_view
         from bus.messages import observation_scaling
         from perception.observation import config_from_scaling, goal_terms
-        from policy.rewards import base_reward
+        from policy.algorithms.rewards import base_reward
 
         rr = self.rr
         self._time(msg.header.stamp)

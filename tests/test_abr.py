@@ -9,9 +9,14 @@ import pytest
 import torch
 
 from perception.observation import FrameStacker
-from policy.abr import ABRConfig, AugmentativeBackwardReward, FeatureCNN, cosine_similarity
-from policy.agents import make_goal_reward
-from policy.replay import ReplayBuffer
+from policy.algorithms.abr import (
+    ABRConfig,
+    AugmentativeBackwardReward,
+    FeatureCNN,
+    cosine_similarity,
+)
+from policy.algorithms.agents import make_goal_reward
+from policy.algorithms.replay import ReplayBuffer
 
 E1 = np.eye(20, dtype=np.float32)[0]
 E2 = np.eye(20, dtype=np.float32)[1]

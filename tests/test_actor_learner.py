@@ -30,13 +30,13 @@ from bus import keys
 from bus.node import Bus
 from bus.session import SessionConfig
 from perception.observation import FrameStacker
-from policy.episode_assembler import TOPICS, EpisodeAssembler
-from policy.evaluate import SHIPPED_POLICY
-from policy.learner_node import PUBLISH_LINE, SUMMARY_LINE
-from policy.learner_node import READY_LINE as LEARNER_READY
-from policy.node import READY_LINE as POLICY_READY
-from policy.td3 import load_actor
-from policy.weights import WEIGHTS_LINE, decode_actor
+from policy.algorithms.td3 import load_actor
+from policy.logs.episode_assembler import TOPICS, EpisodeAssembler
+from policy.nodes.learner_node import PUBLISH_LINE, SUMMARY_LINE
+from policy.nodes.learner_node import READY_LINE as LEARNER_READY
+from policy.nodes.node import READY_LINE as POLICY_READY
+from policy.nodes.weights import WEIGHTS_LINE, decode_actor
+from policy.training.evaluate import SHIPPED_POLICY
 from skyloop.launcher import SIM_READY_LINE
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -1,6 +1,6 @@
 """Command lines generated from config dataclasses (tyro, ``skyloop.dataclass_cli``):
-``skyloop train`` from ``policy.train.TrainConfig``, ``skyloop eval`` from
-``policy.evaluate.EvalConfig``. The defaults shown and used are the dataclass's, bad
+``skyloop train`` from ``policy.training.train.TrainConfig``, ``skyloop eval`` from
+``policy.training.evaluate.EvalConfig``. The defaults shown and used are the dataclass's, bad
 values are one-line errors naming the flag (exit 2) before anything starts, and a
 command line gives the config it says."""
 
@@ -15,12 +15,12 @@ from typing import get_args
 
 import pytest
 
-from policy.agents import ALGOS
-from policy.evaluate import EvalConfig
-from policy.rewards import GOAL_REWARDS
-from policy.settings import ConfigError
-from policy.td3 import PRECISIONS
-from policy.train import Algo, Precision, Reward, TrainConfig
+from policy.algorithms.agents import ALGOS
+from policy.algorithms.rewards import GOAL_REWARDS
+from policy.algorithms.td3 import PRECISIONS
+from policy.training.evaluate import EvalConfig
+from policy.training.settings import ConfigError
+from policy.training.train import Algo, Precision, Reward, TrainConfig
 from skyloop.dataclass_cli import parse
 from skyloop.train_cli import TrainCommand, parse_train
 

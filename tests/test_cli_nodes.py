@@ -359,7 +359,7 @@ LEARNER_FLAGS = ["--vehicles", "--algo", "--reward", "--out", "--seed", "--updat
 
 
 def test_learner_options_come_from_its_config():
-    from policy.learner import ALGOS, REWARDS, LearnerConfig
+    from policy.nodes.learner import ALGOS, REWARDS, LearnerConfig
 
     proc = subprocess.run([sys.executable, "-m", "skyloop", "learner", "--help"],
                           capture_output=True, text=True, timeout=120)
@@ -380,7 +380,7 @@ def test_learner_options_come_from_its_config():
 
 
 def test_a_learner_command_line_gives_the_config_it_says(capsys):
-    from policy.learner import LearnerConfig
+    from policy.nodes.learner import LearnerConfig
     from skyloop.learner_cli import parse_learner
 
     command = parse_learner(["--vehicles", "uav1", "uav2", "--algo", "ddpg", "--reward", "egr",

@@ -10,8 +10,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import skyloop  # noqa: F401  (registers skyloop/UavNav-v0)
-from policy.env import EnvConfig, UavNavEnv, body_to_world
-from policy.scripted import StraightLineController
+from policy.algorithms.scripted import StraightLineController
+from policy.training.env import EnvConfig, UavNavEnv, body_to_world
 
 
 @pytest.fixture(scope="module")

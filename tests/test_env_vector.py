@@ -71,7 +71,7 @@ def test_stable_baselines3_subproc_vec_env():
 
 
 def test_gymnasium_async_vector_env():
-    # spawned workers: the spec (entry point policy.env:UavNavEnv) travels to them, so
+    # spawned workers: the spec (entry point policy.training.env:UavNavEnv) travels to them, so
     # they need not import skyloop either
     venv = gymnasium.make_vec(skyloop.ENV_ID, num_envs=2, vectorization_mode="async",
                               vector_kwargs={"context": "spawn"}, **KW)

@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from policy.evaluate import SHIPPED_POLICY, ActorController, evaluate
-from policy.td3 import TD3, TD3Config
+from policy.algorithms.td3 import TD3, TD3Config
+from policy.training.evaluate import SHIPPED_POLICY, ActorController, evaluate
 
 
 @pytest.fixture(scope="module")

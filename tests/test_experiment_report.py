@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from policy.train import CSV_FIELDS, TrainConfig, Trainer
+from policy.training.train import CSV_FIELDS, TrainConfig, Trainer
 from skyloop.experiment.grid import load_grid
 from skyloop.experiment.report import aggregate, t_interval, trailing_mean, write_report
 

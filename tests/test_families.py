@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policy.env import UavNavEnv
+from policy.training.env import UavNavEnv
 from sitl.families import (
     EVAL_SEED0,
     TRAIN_SEEDS,

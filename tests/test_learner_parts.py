@@ -17,14 +17,14 @@ from bus import messages as m
 from bus.node import Bus
 from bus.session import SessionConfig
 from perception.observation import ObservationConfig, scaling_fields
-from policy.episode_assembler import EpisodeAssembler
-from policy.evaluate import SHIPPED_POLICY, ActorController
-from policy.learner import LearnerConfig
-from policy.learner_node import Learner
-from policy.rewards import RewardConfig
-from policy.td3 import ACTOR_FORMAT, TD3, TD3Config
-from policy.transitions import transitions_from_steps
-from policy.weights import WeightsFollower, actor_weights_message
+from policy.algorithms.rewards import RewardConfig
+from policy.algorithms.td3 import ACTOR_FORMAT, TD3, TD3Config
+from policy.logs.episode_assembler import EpisodeAssembler
+from policy.logs.transitions import transitions_from_steps
+from policy.nodes.learner import LearnerConfig
+from policy.nodes.learner_node import Learner
+from policy.nodes.weights import WeightsFollower, actor_weights_message
+from policy.training.evaluate import SHIPPED_POLICY, ActorController
 
 PERIOD_NS = 100_000_000
 SCALING = scaling_fields(ObservationConfig())  # as the perception node records it
@@ -255,7 +255,7 @@ def test_learner_consumes_bus_episodes_publishes_and_resumes(bus, tmp_path):
 
 def test_critic_warmup_leaves_the_actor_as_it_was():
     from perception.observation import FrameStacker
-    from policy.replay import ReplayBuffer
+    from policy.algorithms.replay import ReplayBuffer
 
     agent = TD3(TD3Config(seed=5))
     buf = ReplayBuffer(100, (3, 35), 4, seed=0)

@@ -11,13 +11,13 @@ import pytest
 
 from bus.log import read_episodes
 from perception.observation import ObservationConfig
-from policy.agents import make_goal_reward
-from policy.env import UavNavEnv
-from policy.logrun import log_env_episodes
-from policy.offline import load_logs, rebuild_episode, train_from_logs
-from policy.replay import ReplayBuffer
-from policy.rewards import RewardConfig
-from policy.scripted import StraightLineController
+from policy.algorithms.agents import make_goal_reward
+from policy.algorithms.replay import ReplayBuffer
+from policy.algorithms.rewards import RewardConfig
+from policy.algorithms.scripted import StraightLineController
+from policy.logs.logrun import log_env_episodes
+from policy.logs.offline import load_logs, rebuild_episode, train_from_logs
+from policy.training.env import UavNavEnv
 
 SEED, EPISODES = 40, 3
 

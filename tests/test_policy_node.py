@@ -23,7 +23,7 @@ from mavlink_bridge.offboard_client import OffboardClientConfig  # noqa: E402
 from mavlink_bridge.transport import mavlink  # noqa: E402
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig  # noqa: E402
 from perception.observation import ObservationConfig, scaling_fields  # noqa: E402
-from policy.node import MAX_BAD_ACTIONS, PolicyNode  # noqa: E402
+from policy.nodes.node import MAX_BAD_ACTIONS, PolicyNode  # noqa: E402
 from sitl.commander import Commander  # noqa: E402
 from sitl.vehicle_service import VehicleService  # noqa: E402
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from policy.env import EnvConfig, UavNavEnv
+from policy.training.env import EnvConfig, UavNavEnv
 from sitl.episode import EpisodeConfig
 from sitl.obstacles import box_solid
 from sitl.render_fast import FRONT, FastRenderer

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from policy.replay import Batch, ReplayBuffer
-from policy.rewards import EqualGoalReward, TraditionalReward
+from policy.algorithms.replay import Batch, ReplayBuffer
+from policy.algorithms.rewards import EqualGoalReward, TraditionalReward
 
 FRAMES, ATTRS = 3, 35
 

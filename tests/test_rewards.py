@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from policy.agents import make_goal_reward
-from policy.rewards import (
+from policy.algorithms.agents import make_goal_reward
+from policy.algorithms.rewards import (
     EqualGoalReward,
     NoGoalReward,
     RewardConfig,

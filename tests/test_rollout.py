@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from policy.rollout import EpisodeResult, summarize, wilson_interval
+from policy.training.rollout import EpisodeResult, summarize, wilson_interval
 
 
 @pytest.mark.parametrize(

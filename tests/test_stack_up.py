@@ -64,8 +64,8 @@ def env_episodes():
     """The same episodes in the in-process env: actions, true positions, outcomes."""
     import torch
 
-    from policy.env import UavNavEnv
-    from policy.evaluate import make_controller
+    from policy.training.env import UavNavEnv
+    from policy.training.evaluate import make_controller
 
     torch.set_num_threads(1)
     controller = make_controller(None)
@@ -125,10 +125,10 @@ def test_parity_actions_and_trajectory(runs, env_episodes):
 
 @pytest.mark.slow
 def test_stack_log_trains_from_logs(runs, env_episodes):
-    from policy.agents import make_goal_reward
-    from policy.offline import load_logs
-    from policy.replay import ReplayBuffer
-    from policy.rewards import RewardConfig
+    from policy.algorithms.agents import make_goal_reward
+    from policy.algorithms.replay import ReplayBuffer
+    from policy.algorithms.rewards import RewardConfig
+    from policy.logs.offline import load_logs
 
     _, mcap, _ = runs["peer"]
     buf = ReplayBuffer(10_000, (3, 35), 4)
@@ -262,7 +262,7 @@ def test_cpu_time_of_a_child_is_read_until_it_is_reaped():
 
 
 def test_launcher_lines_match_nodes():
-    from policy.node import READY_LINE
+    from policy.nodes.node import READY_LINE
     from sitl.node import EPISODE_LINE, SUMMARY_LINE
     from sitl.node import READY_LINE as SIM_READY_LINE
 
@@ -286,11 +286,11 @@ def test_realtime_run_reports_latency(tmp_path):
 
 def test_an_actor_that_outputs_nan_stops_the_stack_and_says_why(tmp_path):
     """Not a silent run of timeouts: the policy refuses the actor at load time (and in
-    flight after a few non-finite actions: policy.node.MAX_BAD_ACTIONS), and the launcher
+    flight after a few non-finite actions: policy.nodes.node.MAX_BAD_ACTIONS), and the launcher
     exits non-zero naming it."""
     import torch
 
-    from policy.td3 import TD3, TD3Config
+    from policy.algorithms.td3 import TD3, TD3Config
 
     agent = TD3(TD3Config())
     with torch.no_grad():

@@ -48,9 +48,9 @@ def test_round_trip_and_bad_fields():
 
 
 def test_env_networks_and_replay_take_their_sizes_from_the_spec():
-    from policy.env import UavNavEnv
-    from policy.replay import ReplayBuffer
-    from policy.td3 import TD3Config
+    from policy.algorithms.replay import ReplayBuffer
+    from policy.algorithms.td3 import TD3Config
+    from policy.training.env import UavNavEnv
 
     env = UavNavEnv(scenario="valley")
     try:

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from policy.ddpg import DDPG, DDPGConfig
-from policy.networks import Actor, Critic
-from policy.replay import Batch, ReplayBuffer
-from policy.td3 import TD3, TD3Config, load_actor
+from policy.algorithms.ddpg import DDPG, DDPGConfig
+from policy.algorithms.networks import Actor, Critic
+from policy.algorithms.replay import Batch, ReplayBuffer
+from policy.algorithms.td3 import TD3, TD3Config, load_actor
 
 torch.set_num_threads(1)
 
@@ -226,7 +226,7 @@ def test_mixed_precision_gradients_follow_fp32_and_masters_stay_fp32():
 
 def test_flush_denormals_only_inside():
     tiny = torch.tensor([1e-39], dtype=torch.float32)  # a denormal
-    from policy.td3 import flush_denormals
+    from policy.algorithms.td3 import flush_denormals
 
     with flush_denormals():
         assert (tiny * 1.0).item() == 0.0
@@ -236,7 +236,7 @@ def test_flush_denormals_only_inside():
 def test_precision_is_checked():
     with pytest.raises(ValueError, match="precision"):
         TD3Config(precision="fp8")
-    from policy.td3 import best_precision
+    from policy.algorithms.td3 import best_precision
 
     assert best_precision("cpu") in ("fp32", "bf16")
 
@@ -270,7 +270,7 @@ def test_actor_file_records_its_task_and_refuses_another(tmp_path):
     from dataclasses import replace
 
     from bus.task import TASK
-    from policy.evaluate import ActorController
+    from policy.training.evaluate import ActorController
 
     agent = TD3(TD3Config())
     agent.save_actor(tmp_path / "old.pt")  # no task recorded: taken as it is
@@ -301,12 +301,12 @@ def test_save_and_load_actor(tmp_path):
 
 
 def test_fused_adam_matches_torch_adam_bit_for_bit():
-    """policy.td3.FusedAdam calls torch's fused kernel directly: the same parameters and
+    """policy.algorithms.td3.FusedAdam calls torch's fused kernel directly: the same parameters and
     optimizer state as torch.optim.Adam(fused=True), before and after a state-dict round
     trip."""
     import copy
 
-    from policy.td3 import FusedAdam
+    from policy.algorithms.td3 import FusedAdam
 
     torch.manual_seed(0)
     nets = [torch.nn.Sequential(torch.nn.Linear(7, 16), torch.nn.ReLU(), torch.nn.Linear(16, 2))

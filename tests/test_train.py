@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from policy.plots import curve_figure
-from policy.train import CHECKPOINT, TrainConfig, Trainer
+from policy.training.plots import curve_figure
+from policy.training.train import CHECKPOINT, TrainConfig, Trainer
 
 SMALL = dict(scenario="valley", seed=3, start_steps=60, buffer_size=5000, checkpoint_every=2,
              sync=True)
@@ -226,8 +226,8 @@ def test_mixture_runs_log_each_world_and_keep_snapshots(tmp_path, sync):
     keeps the actor of every N-th episode, loadable by ``skyloop eval``."""
     import numpy as np
 
-    from policy.evaluate import ActorController
-    from policy.train import episode_seed
+    from policy.training.evaluate import ActorController
+    from policy.training.train import episode_seed
     from sitl.families import WorldSource
 
     spec = "mix:valley,forest,city,dynamic"

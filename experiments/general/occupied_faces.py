@@ -14,8 +14,8 @@ import argparse
 import numpy as np
 
 from bus.task import TASK
-from policy.env import UavNavEnv
-from policy.evaluate import ActorController
+from policy.training.env import UavNavEnv
+from policy.training.evaluate import ActorController
 from sitl.families import eval_worlds
 
 

@@ -55,7 +55,7 @@ def main() -> None:
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args()
 
-    from policy.evaluate import evaluate
+    from policy.training.evaluate import evaluate
 
     log = args.run / "selection.jsonl"
     done = [json.loads(line) for line in log.open()] if log.is_file() else []

@@ -1,7 +1,8 @@
 """Grid files: which ``skyloop train`` runs an experiment is made of (pure, no Ray).
 
-A grid file is TOML; every trial is one ``skyloop train`` run (``policy.train.TrainConfig``)
-and the grid is the product of its tasks, methods and seeds::
+A grid file is TOML; every trial is one ``skyloop train`` run
+(``policy.training.train.TrainConfig``) and the grid is the product of its tasks, methods
+and seeds::
 
     name = "paper_static"
     scenarios = ["valley"]            # skyloop scenarios, and/or
@@ -26,8 +27,8 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from policy.settings import ConfigError
-from policy.train import TrainConfig
+from policy.training.settings import ConfigError
+from policy.training.train import TrainConfig
 
 __all__ = ["Grid", "GridError", "Trial", "load_grid"]
 
@@ -76,8 +77,8 @@ def _strings(path: Path, data: dict, key: str) -> list[str]:
 
 
 def _methods(path: Path, data: dict) -> list[tuple[str, str]]:
-    from policy.agents import ALGOS
-    from policy.rewards import GOAL_REWARDS
+    from policy.algorithms.agents import ALGOS
+    from policy.algorithms.rewards import GOAL_REWARDS
 
     if "methods" in data:
         if "algos" in data or "rewards" in data:
@@ -105,7 +106,7 @@ def _methods(path: Path, data: dict) -> list[tuple[str, str]]:
 
 def _tasks(path: Path, data: dict) -> list[tuple[str, str]]:
     """(kind, name) pairs: ("scenario", "valley") or ("env", "BipedalWalkerHardcore-v3")."""
-    from policy.gym_task import check_env_id
+    from policy.training.gym_task import check_env_id
     from sitl.families import check_scenario
 
     tasks: list[tuple[str, str]] = []

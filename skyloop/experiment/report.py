@@ -13,7 +13,7 @@ reproduce and the settings every trial shares, one section per task (scenario or
   for a Gymnasium env the main number is the mean env return (``base_return``: without the
   goal reward's bonus) of the last 100 episodes;
 - with ``--eval-episodes N``: each finished trial's final actor run deterministically (no
-  exploration noise) on N held-out episodes seeded from ``policy.evaluate.EVAL_SEED``,
+  exploration noise) on N held-out episodes seeded from ``policy.training.evaluate.EVAL_SEED``,
   with a Wilson interval per trial, cached in ``<trial>/eval_<N>.json`` under the actor
   file's SHA-256 (an unchanged actor is not evaluated again);
 - the ordering of the methods computed from the data against the paper's: each adjacent
@@ -52,9 +52,9 @@ import numpy as np
 from scipy import stats
 
 from bus.task import episode_outcome
-from policy.plots import CSV_NAME  # importing it selects matplotlib's Agg backend
-from policy.rollout import EpisodeResult, summarize
-from policy.train import ACTOR, RESULT, REWARD_TERMS, WINDOW, TrainConfig, finished
+from policy.training.plots import CSV_NAME  # importing it selects matplotlib's Agg backend
+from policy.training.rollout import EpisodeResult, summarize
+from policy.training.train import ACTOR, RESULT, REWARD_TERMS, WINDOW, TrainConfig, finished
 from skyloop.experiment.grid import PER_TRIAL, Grid, Trial, load_grid
 
 __all__ = ["PAPER", "read_episodes", "trailing_mean", "trial_metrics", "t_interval",
@@ -352,13 +352,13 @@ def load_trial(trial: Trial, grid_dir: Path) -> TrialData:
 # -- evaluation -----------------------------------------------------------------------------
 
 def _evaluate_scenario(actor: Path, config: TrainConfig, episodes: int) -> dict:
-    """``policy.evaluate.evaluate`` with the trial's LiDAR range (evaluate() builds the env
+    """``policy.training.evaluate.evaluate`` with the trial's LiDAR range (evaluate() builds the env
     with the default range)."""
     import torch
 
-    from policy.env import UavNavEnv
-    from policy.evaluate import EVAL_SEED, ActorController
-    from policy.rollout import run_episodes
+    from policy.training.env import UavNavEnv
+    from policy.training.evaluate import EVAL_SEED, ActorController
+    from policy.training.rollout import run_episodes
 
     torch.set_num_threads(1)
     controller = ActorController(actor)
@@ -375,8 +375,8 @@ def _evaluate_gym(actor: Path, config: TrainConfig, episodes: int) -> dict:
     EVAL_SEED + i; success = the episode's return reached ``goal_return``."""
     import torch
 
-    from policy.evaluate import EVAL_SEED, ActorController
-    from policy.gym_task import GymTask
+    from policy.training.evaluate import EVAL_SEED, ActorController
+    from policy.training.gym_task import GymTask
 
     torch.set_num_threads(1)
     controller = ActorController(actor, task=None)  # flattens the (frames, obs_dim) state
@@ -406,7 +406,7 @@ def _evaluate_gym(actor: Path, config: TrainConfig, episodes: int) -> dict:
 def evaluate_trial(run_dir: Path, config: TrainConfig, episodes: int) -> dict | None:
     """The trial's final actor on ``episodes`` held-out episodes, cached as
     ``eval_<episodes>.json`` under the actor's SHA-256; ``None`` without an actor."""
-    from policy.evaluate import EVAL_SEED
+    from policy.training.evaluate import EVAL_SEED
 
     actor = run_dir / ACTOR
     if not actor.is_file():

@@ -1,6 +1,6 @@
 """``skyloop experiment run GRID.toml --out DIR``: a grid of ``skyloop train`` runs on Ray Tune.
 
-Each trial is exactly a ``policy.train.Trainer`` run in ``DIR/<trial>/`` (CSV, checkpoints,
+Each trial is exactly a ``policy.training.train.Trainer`` run in ``DIR/<trial>/`` (CSV, checkpoints,
 TensorBoard, curve, ``result.json``), started by Ray Tune as a function trainable. The
 trial directory is the one source of truth for progress:
 
@@ -28,7 +28,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from policy.train import CHECKPOINT, TrainConfig, Trainer, finished
+from policy.training.train import CHECKPOINT, TrainConfig, Trainer, finished
 from skyloop.experiment.grid import Grid
 
 __all__ = ["run_grid", "grid_status"]

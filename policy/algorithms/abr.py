@@ -51,7 +51,7 @@ import torch
 from torch import nn
 
 from bus.task import TASK
-from policy.rewards import GoalReward
+from policy.algorithms.rewards import GoalReward
 
 __all__ = [
     "ABRConfig",

@@ -2,8 +2,8 @@
 
 ``skyloop train --algo td3 --reward abr --scenario valley --episodes 5000 --seed 0 --out DIR``
 
-The task is a skyloop scenario (``policy.env.UavNavEnv``) or, with ``env``, any Gymnasium
-env id (``policy.gym_task.GymTask``: frames stacked the same way, an episodic return of
+The task is a skyloop scenario (``policy.training.env.UavNavEnv``) or, with ``env``, any Gymnasium
+env id (``policy.training.gym_task.GymTask``: frames stacked the same way, an episodic return of
 ``goal_return`` or more counts as reaching the goal).
 
 Per env step: act (uniform random for the first ``start_steps``, then the actor plus
@@ -11,7 +11,7 @@ Gaussian exploration noise), step the env, store the transition with its *base* 
 (terminal only on collision/goal, never on the 300-step truncation), and one agent
 update per env step. Per episode end: the goal-reward variant rewrites the episode's
 rewards in the replay buffer (TR/NGR/EGR/ABR), a CSV row is written, TensorBoard scalars
-are logged (below). ``envs`` envs are stepped in turn (``policy.collector.Collector``),
+are logged (below). ``envs`` envs are stepped in turn (``policy.training.collector.Collector``),
 each its own stream of episodes in the replay buffer.
 
 TensorBoard, one point per finished episode on two x-axes, each its own run directory so
@@ -36,14 +36,14 @@ Two loops over the same bookkeeping:
   state and counters, so the same seed gives the same CSV on the same machine, and with
   one env a resumed run continues exactly as an uninterrupted one.
 - parallel (the default): the envs run in a collector process while this process
-  updates (``policy.collector``); updates per env step stay 1 on average, the collector
+  updates (``policy.training.collector``); updates per env step stay 1 on average, the collector
   at most ``max_lead`` steps ahead. The same episode seeds, network initialisation and
   random-action phase as ``sync``; *not* reproducible: which actor version chose each
   action after the random phase depends on timing, and so does everything after it.
 
-Both run with denormals flushed to zero (``policy.td3.flush_denormals``: Adam's moments
+Both run with denormals flushed to zero (``policy.algorithms.td3.flush_denormals``: Adam's moments
 of dead units otherwise make every update several times slower) and in float32 unless
-``precision="bf16"`` (mixed precision, ``policy.td3``).
+``precision="bf16"`` (mixed precision, ``policy.algorithms.td3``).
 
 Resumable in both: a checkpoint is written atomically every ``checkpoint_every``
 episodes and at the end; ``resume=True`` continues from it, truncating the CSV to the
@@ -71,14 +71,20 @@ import tyro
 from tqdm import tqdm
 
 from bus.task import episode_outcome
-from policy.agents import ALGOS, make_agent, make_goal_reward
-from policy.collector import Collector, CollectorSpec, SharedActor, Transition, collector_main
-from policy.env import UavNavEnv
-from policy.plots import CSV_NAME, plot_runs
-from policy.replay import ReplayBuffer
-from policy.rewards import GOAL_REWARDS, RewardConfig
-from policy.settings import Algo, ConfigError, Reward, check_at_least
-from policy.td3 import PRECISIONS, flush_denormals
+from policy.algorithms.agents import ALGOS, make_agent, make_goal_reward
+from policy.algorithms.replay import ReplayBuffer
+from policy.algorithms.rewards import GOAL_REWARDS, RewardConfig
+from policy.algorithms.td3 import PRECISIONS, flush_denormals
+from policy.training.collector import (
+    Collector,
+    CollectorSpec,
+    SharedActor,
+    Transition,
+    collector_main,
+)
+from policy.training.env import UavNavEnv
+from policy.training.plots import CSV_NAME, plot_runs
+from policy.training.settings import Algo, ConfigError, Reward, check_at_least
 
 CHECKPOINT = "checkpoint.pt"
 RESULT = "result.json"  # written last: the run is finished
@@ -96,7 +102,7 @@ CSV_FIELDS = ["episode", "return", "steps", "outcome", "success_rate_500",
 WINDOW = 500  # success rate over the last 500 episodes (abr-method.md)
 
 
-Precision = Literal["fp32", "bf16"]  # the keys of policy.td3.PRECISIONS
+Precision = Literal["fp32", "bf16"]  # the keys of policy.algorithms.td3.PRECISIONS
 
 
 @dataclass
@@ -138,7 +144,7 @@ class TrainConfig:
     device: str = "cpu"
     """the learner's device: cpu, cuda, cuda:1, ..."""
     # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32
-    # weights and Adam; policy.td3.best_precision says whether it pays on a machine
+    # weights and Adam; policy.algorithms.td3.best_precision says whether it pays on a machine
     precision: Precision = "fp32"
     """the update's arithmetic: fp32, or bf16 matmuls with float32 weights and Adam"""
     env: str = ""
@@ -186,7 +192,7 @@ class TrainConfig:
         except (RuntimeError, AssertionError) as exc:
             raise ValueError(f"--device {self.device!r} is not usable here ({exc})") from exc
         if self.env:
-            from policy.gym_task import check_env_id
+            from policy.training.gym_task import check_env_id
 
             check_env_id(self.env)
         else:
@@ -205,7 +211,7 @@ def episode_seed(seed: int, episode: int) -> int:
 def make_envs(config: dict, n: int) -> list:
     """``n`` envs of the task (``asdict(TrainConfig)``); picklable for the collector."""
     if config["env"]:
-        from policy.gym_task import GymTask
+        from policy.training.gym_task import GymTask
 
         return [GymTask(config["env"], config["goal_return"]) for _ in range(n)]
     return [UavNavEnv(scenario=config["scenario"], lidar_max_range=config["lidar_max_range"],
@@ -484,7 +490,7 @@ class Trainer:
                     self.agent.save_actor(self.out / SNAPSHOTS / f"actor-ep{self.episode}.pt")
 
             try:
-                with flush_denormals():  # a large speed-up, see policy.td3
+                with flush_denormals():  # a large speed-up, see policy.algorithms.td3
                     (self._loop_sync if self.config.sync else self._loop_parallel)(emit)
                 board.end()  # the hparams session ends as a success
             finally:

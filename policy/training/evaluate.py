@@ -3,9 +3,9 @@
 ``skyloop eval [--policy CKPT|scripted] --scenario NAME --episodes N --seed S [--json PATH]``
 
 Episode ``i`` is reset with seed ``S + i``. Training episodes use seeds
-``train_seed * 1_000_003 + i`` (``policy.train``), so the default evaluation seed
+``train_seed * 1_000_003 + i`` (``policy.training.train``), so the default evaluation seed
 ``EVAL_SEED`` = 1,000,000,000 gives episodes no small-seed training run has seen.
-Rates carry 95% Wilson intervals (``policy.rollout``).
+Rates carry 95% Wilson intervals (``policy.training.rollout``).
 """
 
 from __future__ import annotations
@@ -22,14 +22,14 @@ import tyro
 from tqdm import tqdm
 
 from bus.task import TASK, TaskSpec
-from policy.env import UavNavEnv
-from policy.rollout import run_episode, summarize
-from policy.scripted import StraightLineController
-from policy.settings import check_at_least
-from policy.td3 import load_actor
+from policy.algorithms.scripted import StraightLineController
+from policy.algorithms.td3 import load_actor
+from policy.training.env import UavNavEnv
+from policy.training.rollout import run_episode, summarize
+from policy.training.settings import check_at_least
 
 EVAL_SEED = 1_000_000_000
-SHIPPED_POLICY = Path(__file__).resolve().parent / "shipped" / "td3_abr_valley" / "actor.pt"
+SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "shipped" / "td3_abr_valley" / "actor.pt"
 
 
 @dataclass

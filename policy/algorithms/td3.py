@@ -23,7 +23,7 @@ target updates::
     theta' <- tau theta + (1 - tau) theta'       (actor and both critics, tau = 0.005)
 
 Speed (``benchmarks/bench_td3.py``): both critics are one fused module
-(``policy.networks.Critic``), the target update is one ``torch._foreach_lerp_`` per
+(``policy.algorithms.networks.Critic``), the target update is one ``torch._foreach_lerp_`` per
 network, Adam runs its ``fused`` kernel, and the actor's gradient does not flow into the
 critic weights. The update is GEMM-bound on CPU (about 355 MFLOP per update at 400-300,
 batch 100). ``torch.compile`` was tried (default and max-autotune, losses only and the
@@ -52,8 +52,8 @@ import torch
 from torch import nn
 
 from bus.task import TASK, TaskSpec
-from policy.networks import Actor, Critic
-from policy.replay import Batch
+from policy.algorithms.networks import Actor, Critic
+from policy.algorithms.replay import Batch
 
 __all__ = ["TD3Config", "TD3", "FusedAdam", "LowPrecisionCopy", "PRECISIONS", "best_precision",
            "flush_denormals", "load_actor", "make_adam", "soft_update"]

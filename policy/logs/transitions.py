@@ -2,7 +2,7 @@
 live learner (``skyloop learner``): both decode their messages into
 :class:`EpisodeSteps` and call :func:`transitions_from_steps` and :func:`add_episode`.
 
-The contract (see :mod:`policy.offline` for the message side): an episode of ``T``
+The contract (see :mod:`policy.logs.offline` for the message side): an episode of ``T``
 steps has the goal (from START), the outcome and ``T`` (from END), one 35-attribute
 observation per step 0 .. T-1 (step T when the log has it), the true pose per step
 0 .. T, and the policy's body-frame action of each step 0 .. T-1.
@@ -32,7 +32,7 @@ from perception.observation import (
     goal_slots,
     goal_terms,
 )
-from policy.rewards import GoalReward, RewardConfig, base_reward, collision_reward
+from policy.algorithms.rewards import GoalReward, RewardConfig, base_reward, collision_reward
 
 OBS_DIM, FRAMES = TASK.obs_dim, TASK.frames  # bus.task
 OUTCOMES = ("success", "collision", "timeout", "aborted")
@@ -125,7 +125,7 @@ def transitions_from_steps(ep: EpisodeSteps, config: RewardConfig) -> Transition
 
 
 def add_episode(tr: Transitions, buffer, goal_reward: GoalReward) -> np.ndarray:
-    """Store one rebuilt episode in a :class:`~policy.replay.ReplayBuffer` and let the
+    """Store one rebuilt episode in a :class:`~policy.algorithms.replay.ReplayBuffer` and let the
     goal-reward variant (TR/NGR/EGR/ABR) rewrite its rewards; returns the rewards."""
     T = len(tr.actions)
     for k in range(T):

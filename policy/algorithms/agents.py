@@ -5,9 +5,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from policy.abr import ABRConfig, AugmentativeBackwardReward
-from policy.ddpg import DDPG, DDPGConfig
-from policy.rewards import (
+from policy.algorithms.abr import ABRConfig, AugmentativeBackwardReward
+from policy.algorithms.ddpg import DDPG, DDPGConfig
+from policy.algorithms.rewards import (
     GOAL_REWARDS,
     EqualGoalReward,
     GoalReward,
@@ -15,7 +15,7 @@ from policy.rewards import (
     RewardConfig,
     TraditionalReward,
 )
-from policy.td3 import TD3, TD3Config
+from policy.algorithms.td3 import TD3, TD3Config
 
 ALGOS: dict[str, tuple[type[TD3], type[TD3Config]]] = {
     "td3": (TD3, TD3Config),
@@ -36,7 +36,7 @@ def make_goal_reward(
     name: str, config: RewardConfig | None = None, **abr_kwargs: Any
 ) -> GoalReward:
     """Build a goal-reward variant by name: ``tr``, ``ngr``, ``egr`` or ``abr``
-    (``abr_kwargs`` go to :class:`policy.abr.ABRConfig`)."""
+    (``abr_kwargs`` go to :class:`policy.algorithms.abr.ABRConfig`)."""
     key = name.lower()
     if key == "tr":
         return TraditionalReward(config)

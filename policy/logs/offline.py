@@ -46,11 +46,11 @@ from bus.messages import (
     setpoint_values,
 )
 from bus.task import TASK
-from policy.agents import make_goal_reward
-from policy.replay import ReplayBuffer
-from policy.rewards import RewardConfig
-from policy.td3 import TD3, TD3Config, flush_denormals
-from policy.transitions import (  # noqa: F401 - Transitions, terminal_observation re-exported
+from policy.algorithms.agents import make_goal_reward
+from policy.algorithms.replay import ReplayBuffer
+from policy.algorithms.rewards import RewardConfig
+from policy.algorithms.td3 import TD3, TD3Config, flush_denormals
+from policy.logs.transitions import (  # noqa: F401 - Transitions, terminal_observation re-exported
     FRAMES,
     OBS_DIM,
     EpisodeSteps,
@@ -100,7 +100,7 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None) -> EpisodeS
 def rebuild_episode(episode, config: RewardConfig,
                     commands: dict[int, tuple] | None = None) -> Transitions:
     """Transitions of one complete logged episode; ``ValueError`` names what does not
-    fit (:func:`episode_steps`, then :func:`policy.transitions.transitions_from_steps`)."""
+    fit (:func:`episode_steps`, then :func:`policy.logs.transitions.transitions_from_steps`)."""
     return transitions_from_steps(episode_steps(episode, commands), config)
 
 
@@ -192,11 +192,11 @@ def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: 
     agent = (TD3BC if bc else TD3)(TD3Config(seed=seed))
     agent.task = TASK.to_dict()  # recorded in its actor file
     if init_actor is not None:
-        from policy.td3 import load_actor
+        from policy.algorithms.td3 import load_actor
 
         agent.actor.load_state_dict(load_actor(init_actor, task=TASK).state_dict())
         agent.actor_target.load_state_dict(agent.actor.state_dict())
-    with flush_denormals():  # Adam's moments of dead units: see policy.td3
+    with flush_denormals():  # Adam's moments of dead units: see policy.algorithms.td3
         for _ in tqdm(range(updates), unit="upd",
                       desc=f"{summary['algo']}+{reward} from logs"):
             agent.update(buffer.sample(agent.config.batch_size))

@@ -17,7 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 CSV_NAME = "episodes.csv"
-CONFIG_NAME = "config.json"  # the run's TrainConfig, written by policy.train
+CONFIG_NAME = "config.json"  # the run's TrainConfig, written by policy.training.train
 RETURN_WINDOW = 100  # episodes in the return panel's moving mean
 
 

@@ -12,8 +12,8 @@ from typing import Literal
 
 __all__ = ["Algo", "ConfigError", "Reward", "check_at_least"]
 
-#: the agents (the keys of ``policy.agents.ALGOS``) and the goal rewards (of
-#: ``policy.rewards.GOAL_REWARDS``) a command line may choose (tests check they agree)
+#: the agents (the keys of ``policy.algorithms.agents.ALGOS``) and the goal rewards (of
+#: ``policy.algorithms.rewards.GOAL_REWARDS``) a command line may choose (tests check they agree)
 Algo = Literal["td3", "ddpg"]
 Reward = Literal["tr", "ngr", "egr", "abr"]
 

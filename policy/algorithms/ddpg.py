@@ -1,6 +1,6 @@
 """DDPG (Lillicrap et al. 2015), the paper's baseline (section 2, eqs. 2.6-2.8).
 
-Same networks, replay, exploration and checkpoint format as ``policy.td3.TD3``, minus
+Same networks, replay, exploration and checkpoint format as ``policy.algorithms.td3.TD3``, minus
 TD3's three changes: one critic, no target policy smoothing, no delay::
 
     y_i = r_i + gamma (1 - d_i) Q'(s_{i+1}, mu'(s_{i+1}))         (target)
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from policy.td3 import TD3, TD3Config
+from policy.algorithms.td3 import TD3, TD3Config
 
 __all__ = ["DDPGConfig", "DDPG"]
 

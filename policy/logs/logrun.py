@@ -1,6 +1,6 @@
 """Log in-process env episodes in the stack's episode-log format (``bus.log``).
 
-The same topics and contract as a stack run (see :mod:`policy.offline`): episode
+The same topics and contract as a stack run (see :mod:`policy.logs.offline`): episode
 START/END, one observation, one truth pose per step and one ``cmd_vel`` per action, so
 ``skyloop train --from-logs`` learns from in-process runs and stack runs alike.
 Times are sim times (0.1 s a step) so the file is byte-identical for the same seed.
@@ -17,7 +17,7 @@ from bus.keys import CMD_VEL, EPISODE, OBSERVATION, TRUTH
 from bus.log import EpisodeLogWriter
 from bus.task import TASK, episode_outcome
 from perception.observation import scaling_fields
-from policy.rollout import Controller
+from policy.training.rollout import Controller
 
 NS = 1_000_000_000
 

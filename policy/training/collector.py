@@ -5,7 +5,7 @@ when its episode ends, and turns one round (one step of every env) into ``Transi
 records. The actions are uniform random for the first ``start_steps`` env steps of the
 run (abr-method.md) and the actor's plus exploration noise after (``act``).
 
-``--sync`` (``policy.train``) drives a ``Collector`` in the trainer's own loop, so the
+``--sync`` (``policy.training.train``) drives a ``Collector`` in the trainer's own loop, so the
 order of every random draw is fixed and a seed gives the same run. The parallel mode
 runs ``collector_main`` in a second process (the learner keeps the main one):
 
@@ -169,8 +169,8 @@ def collector_main(conn: Any, spec: CollectorSpec, shared: SharedActor, stop: An
     _die_with_parent()
     parent = os.getppid()
     torch.set_num_threads(1)
-    from policy.networks import Actor
-    from policy.td3 import explore
+    from policy.algorithms.networks import Actor
+    from policy.algorithms.td3 import explore
 
     actor = Actor(**spec.actor_kwargs).requires_grad_(False)
     seen = shared.fetch(actor, -1)

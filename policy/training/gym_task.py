@@ -3,7 +3,7 @@
 The paper tests ABR on ``BipedalWalkerHardcore-v3``, a task without a goal point, by
 treating "a certain episodic reward" as the goal. This wrapper gives any Gymnasium env
 with a flat ``Box`` observation and ``Box`` action the interface the trainer uses for
-the UAV env (``policy.env.UavNavEnv``):
+the UAV env (``policy.training.env.UavNavEnv``):
 
 - States are the last ``frames`` observations stacked FIFO, zeros before the first
   (Algorithm 3.1's ``s(0, 0, ..., o)``), shape ``(frames, obs_dim)``; ABR's feature CNN

@@ -3,8 +3,9 @@
 Transitions ``(s_t, a_t, r_t, s_{t+1}, d_t)`` live in preallocated numpy arrays used as a
 ring of ``capacity`` slots (1e6, Table 4.1). Besides the reward used for learning the
 buffer keeps every transition's *base* reward (eq. 3.5 or the collision reward) so that a
-goal-reward variant (TR, NGR, EGR, ABR; ``policy.rewards`` / ``policy.abr``) can rewrite
-an episode's rewards from base when the episode ends, however often it is done.
+goal-reward variant (TR, NGR, EGR, ABR; ``policy.algorithms.rewards`` /
+``policy.algorithms.abr``) can rewrite an episode's rewards from base when the episode
+ends, however often it is done.
 
 ``done`` is 1 only for a *terminal* transition (collision, goal). A time-limit
 truncation (300 steps) ends the episode but is not terminal: the critic target still

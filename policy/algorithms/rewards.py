@@ -22,7 +22,7 @@ replay buffer, always starting from the stored *base* rewards:
 TR     the last (goal) transition gets ``goal_tr`` (+50)
 NGR    nothing extra
 EGR    every transition of the episode gets ``egr_bonus`` (+1)
-ABR    rank-based bonus per trajectory pattern (``policy.abr.AugmentativeBackwardReward``)
+ABR    rank-based bonus per trajectory pattern (``abr.AugmentativeBackwardReward``)
 =====  ========================================================================
 
 This module is numpy-only (no torch) so the environment can import it cheaply.
@@ -142,7 +142,7 @@ def collision_reward(config: RewardConfig) -> tuple[float, dict[str, float]]:
 
 
 class EpisodeStore(Protocol):
-    """What a goal-reward variant needs from the replay buffer (``policy.replay``)."""
+    """What a goal-reward variant needs from the replay buffer (``policy.algorithms.replay``)."""
 
     def episode_base_rewards(self, episode: Any) -> np.ndarray: ...
 
@@ -232,5 +232,5 @@ class EqualGoalReward(GoalReward):
         return r
 
 
-#: the goal-reward variants by name (``policy.agents.make_goal_reward`` builds them)
+#: the goal-reward variants by name (``policy.algorithms.agents.make_goal_reward`` builds them)
 GOAL_REWARDS = ("tr", "ngr", "egr", "abr")

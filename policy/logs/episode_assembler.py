@@ -1,7 +1,7 @@
 """Complete episodes from live bus messages, per vehicle (the learner's pure core).
 
-Input: decoded messages of the log contract (:mod:`policy.transitions`) as they arrive,
-``add(vehicle, topic, msg)``; output: :class:`~policy.transitions.EpisodeSteps` of every
+Input: decoded messages of the log contract (:mod:`policy.logs.transitions`) as they arrive,
+``add(vehicle, topic, msg)``; output: :class:`~policy.logs.transitions.EpisodeSteps` of every
 episode that arrived whole, from :meth:`EpisodeAssembler.poll`. Nothing here blocks,
 raises on bad input or touches a session: the learner calls it from its main loop.
 
@@ -32,7 +32,7 @@ import numpy as np
 from bus import keys
 from bus import messages as m
 from bus.task import TASK
-from policy.transitions import EpisodeSteps, Pose
+from policy.logs.transitions import EpisodeSteps, Pose
 
 TOPICS = (keys.EPISODE, keys.OBSERVATION, keys.TRUTH, keys.CMD_VEL)
 

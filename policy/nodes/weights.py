@@ -1,6 +1,6 @@
 """Actor weights over the bus (topic ``actor``, ``skyloop_msgs/ActorWeights``).
 
-The blob is what :meth:`policy.td3.TD3.save_actor` writes (``torch.save`` of the format
+The blob is what :meth:`policy.algorithms.td3.TD3.save_actor` writes (``torch.save`` of the format
 tag ``skyloop-actor-1``, the actor's shape config and its state dict), the message
 ``format`` is that tag and ``sha256`` the blob's hex digest. Versions count up from 1
 per learner run; version 0 is whatever actor a policy node started with.
@@ -28,10 +28,10 @@ import torch
 from bus import keys
 from bus import messages as m
 from bus.task import TASK
-from policy.networks import Actor
-from policy.td3 import ACTOR_FORMAT, TD3, load_actor
+from policy.algorithms.networks import Actor
+from policy.algorithms.td3 import ACTOR_FORMAT, TD3, load_actor
 
-log = logging.getLogger("skyloop.policy.weights")
+log = logging.getLogger("skyloop.policy.nodes.weights")
 WEIGHTS_LINE = "SKYLOOP-POLICY-WEIGHTS "
 
 

@@ -14,7 +14,7 @@ episode changes (never carried across episodes), the actor maps the stacked stat
 (the env does the same), sent as SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_BODY_NED with
 the velocity + yaw-rate type mask.
 
-**New weights** (``--weights-from-bus``): a :class:`~policy.weights.WeightsFollower`
+**New weights** (``--weights-from-bus``): a :class:`~policy.nodes.weights.WeightsFollower`
 decodes actor weights a learner publishes between observations and swaps them in where
 the frame stacker resets (the episode boundary), never mid-episode; ``weights_version``
 is the version flying.
@@ -84,7 +84,7 @@ class PolicyNode:
         #: the task the controller was trained under (None: it depends on no parameter,
         #: e.g. the scripted controller); default: the controller's ``trained_task``
         self.trained = trained or getattr(controller, "trained_task", None)
-        self.weights = weights  # a policy.weights.WeightsFollower, or None
+        self.weights = weights  # a policy.nodes.weights.WeightsFollower, or None
         self.lockstep = lockstep
         self.stacker = FrameStacker(frames, dim)
         self.client = OffboardClient(client_config)

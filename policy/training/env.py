@@ -7,7 +7,7 @@ One control step (0.1 s) is the same pipeline the process graph runs, in one pro
     -> collision check of the true body sphere (sitl.world)
     -> VLP-16 scan at the true pose (sitl.lidar)
     -> 32 icosahedron faces + altitude, h, g from the estimate (perception)
-    -> 3-frame state (perception.FrameStacker), reward eq. 3.5 (policy.rewards)
+    -> 3-frame state (perception.FrameStacker), reward eq. 3.5 (policy.algorithms.rewards)
 
 Episode ends (abr-method.md): goal reached (within ``goal_radius`` = 2 m of the goal
 and altitude not above ``goal_max_altitude`` = 6 m) or collision are terminal; 300 steps
@@ -30,7 +30,7 @@ from gymnasium import spaces
 from bus.task import TASK, TaskSpec
 from perception.icosahedron import TruncatedIcosahedron
 from perception.observation import FrameStacker, ObservationConfig, observation_from_scan
-from policy.rewards import RewardConfig, base_reward, collision_reward
+from policy.algorithms.rewards import RewardConfig, base_reward, collision_reward
 from sitl.episode import EpisodeConfig, EpisodeSim, body_to_world
 from sitl.render_fast import FastRenderer
 

@@ -1,6 +1,6 @@
 """The actor-learner's settings (``skyloop learner``), numpy and tyro only.
 
-The node is :mod:`policy.learner_node`, the command line :mod:`skyloop.learner_cli`.
+The node is :mod:`policy.nodes.learner_node`, the command line :mod:`skyloop.learner_cli`.
 Policy nodes started with ``skyloop policy --weights-from-bus`` fly the versions it
 publishes, swapped in between episodes.
 """
@@ -13,15 +13,15 @@ from typing import Annotated, ClassVar
 
 import tyro
 
-from policy.rewards import GOAL_REWARDS as REWARDS  # numpy only
-from policy.settings import Algo, ConfigError, Reward, check_at_least
+from policy.algorithms.rewards import GOAL_REWARDS as REWARDS  # numpy only
+from policy.training.settings import Algo, ConfigError, Reward, check_at_least
 
-ALGOS = ("td3", "ddpg")  # policy.agents.ALGOS (which imports torch)
+ALGOS = ("td3", "ddpg")  # policy.algorithms.agents.ALGOS (which imports torch)
 
 
 @dataclass
 class LearnerConfig:
-    """What the learner learns from and how (see :mod:`policy.learner_node`). Each
+    """What the learner learns from and how (see :mod:`policy.nodes.learner_node`). Each
     default here is the only one: ``skyloop learner``'s options are generated from these
     fields (``skyloop.learner_cli``, with tyro); a bad value is a ``ConfigError`` naming
     the flag, on construction."""

@@ -3,8 +3,8 @@
 Subscribes the log contract's topics (``episode``, ``observation``, ``truth``,
 ``cmd_vel``) of every vehicle (``skyloop/*/...``) or of a list. Zenoh callbacks only
 enqueue (a full queue is a counted drop); the main loop feeds the
-:class:`~policy.episode_assembler.EpisodeAssembler`, turns each whole episode into
-transitions with the code ``--from-logs`` uses (:mod:`policy.transitions`), lets the
+:class:`~policy.logs.episode_assembler.EpisodeAssembler`, turns each whole episode into
+transitions with the code ``--from-logs`` uses (:mod:`policy.logs.transitions`), lets the
 goal reward (TR/NGR/EGR/ABR) rewrite them in the replay buffer and runs TD3 (or DDPG)
 updates: ``updates_per_step`` per new step once ``warmup`` transitions are in, done in
 small chunks between queue drains; the first ``critic_warmup`` updates train the critic
@@ -12,7 +12,7 @@ only (a fresh critic would otherwise drag a trained initial actor around). Every
 ``publish_every`` consumed episodes, once the updates those episodes owed are done and
 the actor has moved, it publishes the actor on ``skyloop/<vehicle>/actor`` for each
 vehicle served, with a version counting up from 1
-(``policy.weights``). A checkpoint (agent, replay buffer, goal-reward state, counters,
+(``policy.nodes.weights``). A checkpoint (agent, replay buffer, goal-reward state, counters,
 RNG states) is written atomically every ``checkpoint_every`` episodes and on exit;
 ``resume`` continues from it, versions included.
 """
@@ -36,14 +36,14 @@ from tqdm import tqdm
 
 from bus import keys
 from bus.task import TASK
-from policy.agents import make_agent, make_goal_reward
-from policy.episode_assembler import TOPICS, AssemblerConfig, EpisodeAssembler
-from policy.learner import LearnerConfig
-from policy.replay import ReplayBuffer
-from policy.rewards import RewardConfig
-from policy.td3 import flush_denormals
-from policy.transitions import add_episode, transitions_from_steps
-from policy.weights import actor_weights_message
+from policy.algorithms.agents import make_agent, make_goal_reward
+from policy.algorithms.replay import ReplayBuffer
+from policy.algorithms.rewards import RewardConfig
+from policy.algorithms.td3 import flush_denormals
+from policy.logs.episode_assembler import TOPICS, AssemblerConfig, EpisodeAssembler
+from policy.logs.transitions import add_episode, transitions_from_steps
+from policy.nodes.learner import LearnerConfig
+from policy.nodes.weights import actor_weights_message
 
 log = logging.getLogger("skyloop.learner")
 CHECKPOINT, ACTOR, SUMMARY = "checkpoint.pt", "actor.pt", "summary.json"
@@ -98,8 +98,8 @@ class Learner:
                 self._publisher(vehicle)
 
     def _init_actor(self, init: str) -> None:
-        from policy.evaluate import SHIPPED_POLICY
-        from policy.td3 import load_actor
+        from policy.algorithms.td3 import load_actor
+        from policy.training.evaluate import SHIPPED_POLICY
 
         path = SHIPPED_POLICY if init == "shipped" else Path(init)
         if not path.is_file():
@@ -172,7 +172,7 @@ class Learner:
         """Run up to ``limit`` owed updates; returns how many ran."""
         n = min(int(self.owed), limit)
         batch = self.agent.config.batch_size
-        with flush_denormals():  # Adam's moments of dead units: see policy.td3
+        with flush_denormals():  # Adam's moments of dead units: see policy.algorithms.td3
             for _ in range(n):
                 self.agent.update(self.buffer.sample(batch),
                                   train_actor=self.agent.updates >= self.config.critic_warmup)

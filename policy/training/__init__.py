@@ -1,0 +1,2 @@
+"""Training and evaluation loops in process: env, gym task, collector, train,
+settings, evaluate, rollout, plots."""
