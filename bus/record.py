@@ -400,12 +400,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-name", default=None,
                    help="run directory name (default: run-<date>-<time>-<pid>)")
     p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
-                   help="MCAP chunk compression (default: zstd). Measured on real VLP-16 "
-                        "scans of the stack (XYZIR, 4.5 m range, ~4,300 returns a scan), "
-                        "100-step episodes: 4.6 MB an episode with zstd, 6.0 with lz4, 7.9 "
-                        "with none; the recorder took ~860 scans/s with zstd against ~4,800 "
-                        "with none flat out (one run on a loaded 2-core machine; `skyloop "
-                        "bench --only record`, benchmarks/RESULTS.md)")
+                   help="MCAP chunk compression (default: zstd, at bus.log.ZSTD_LEVEL). "
+                        "Measured on real VLP-16 scans of the stack (XYZIR, 4.5 m range), "
+                        "100-step episodes: 4.8 MB an episode with zstd, 6.0 with lz4, 7.9 "
+                        "with none; the recorder took ~1,700 scans/s with zstd and ~2,900 "
+                        "with none flat out (one run each on a loaded 2-core machine; "
+                        "`skyloop bench --only record`, benchmarks/RESULTS.md 2026-12-03)")
     p.add_argument("--split-episodes", type=int, default=0, metavar="N",
                    help="a new MCAP file of the run every N episodes, never inside one "
                         "(default 0: one file)")
