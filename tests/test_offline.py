@@ -16,7 +16,7 @@ from policy.algorithms.replay import ReplayBuffer
 from policy.algorithms.rewards import RewardConfig
 from policy.algorithms.scripted import StraightLineController
 from policy.logs.logrun import log_env_episodes
-from policy.logs.offline import load_logs, rebuild_episode, train_from_logs
+from policy.logs.offline import file_observations, load_logs, rebuild_episode, train_from_logs
 from policy.training.env import UavNavEnv
 
 SEED, EPISODES = 40, 3
@@ -58,6 +58,27 @@ def test_rebuilt_transitions_match_the_env(logged):
         assert tr.terminal == (info["goal_reached"] or info["collision"])
         assert np.all(tr.states[0][:2] == 0)  # zero-padded at the episode start
         assert np.array_equal(tr.next_states[:-1], tr.states[1:])
+
+
+def test_an_observation_logged_in_the_previous_episode_is_joined_by_its_fields(logged):
+    """In a stack log the next episode's first observation can lie before its START
+    (perception's path through the bus is longer than the sim's): it must neither
+    replace the ended episode's step 0 nor go missing from its own episode."""
+    path, _ = logged
+    episodes, _ = read_episodes(path)
+    whole = [rebuild_episode(ep, RewardConfig()) for ep in episodes[:2]]
+    first, second = episodes[0], episodes[1]
+    early = second.topic("observation")[0]
+    assert early.decode().step == 0
+    second.messages.remove(early)  # as the recorder saw it: before the START
+    first.messages.insert(len(first.messages) - 1, early)
+    observations = file_observations(path)
+    for ep, expected in zip((first, second), whole, strict=True):
+        tr = rebuild_episode(ep, RewardConfig(), observations=observations)
+        assert np.array_equal(tr.states, expected.states)
+        np.testing.assert_array_equal(tr.rewards, expected.rewards)
+    # without the file's observations the first episode is still right
+    assert np.array_equal(rebuild_episode(first, RewardConfig()).states, whole[0].states)
 
 
 def test_rewards_use_the_scaling_the_log_records(tmp_path):

@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,19 +73,30 @@ class LogReport:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
 
 
-def episode_steps(episode, commands: dict[int, tuple] | None = None) -> EpisodeSteps:
+def episode_steps(episode, commands: dict[int, tuple] | None = None,
+                  observations: dict[tuple[Any, int, int], Any] | None = None) -> EpisodeSteps:
     """Decode a logged episode (``bus.log_reader.Episode``) into :class:`EpisodeSteps`.
 
     ``commands`` (body-frame ``cmd_vel`` of the whole file by stamp) recovers an action
     the recorder saw after the episode's END event: in a stack run commands come from
     the bridge and events from the sim, so the last command can arrive late.
+    Observations are joined by their own (episode, step) fields, never by where they
+    lie in the log: perception's observation of the next episode's step 0 can reach the
+    recorder before the sim's START does (two paths through the bus), and so lie inside
+    this episode's range. ``observations`` (every observation of the file by (episode,
+    step) per vehicle, :func:`file_observations`) also finds such an observation for its
+    own episode.
     """
     T = episode.steps
     if T is None or T < 1:
         raise ValueError("no steps")
     start = episode.start_event
     goal = np.array([start.goal.x, start.goal.y, start.goal.z])
-    obs_msgs = [m.decode() for m in episode.topic("observation")]
+    if observations is None:
+        observations = {(episode.vehicle, int(o.episode), int(o.step)): o
+                        for o in (m.decode() for m in episode.topic("observation"))}
+    obs_msgs = [o for (v, e, _), o in observations.items()
+                if v == episode.vehicle and e == episode.index]
     obs = {int(o.step): observation_values(o)[-1] for o in obs_msgs}
     truth_msgs = [m.decode() for m in episode.topic("truth")]
     cmds = (msg.decode() for msg in episode.topic("cmd_vel"))
@@ -98,10 +110,25 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None) -> EpisodeS
 
 
 def rebuild_episode(episode, config: RewardConfig,
-                    commands: dict[int, tuple] | None = None) -> Transitions:
+                    commands: dict[int, tuple] | None = None,
+                    observations: dict[tuple[Any, int, int], Any] | None = None
+                    ) -> Transitions:
     """Transitions of one complete logged episode; ``ValueError`` names what does not
     fit (:func:`episode_steps`, then :func:`policy.logs.transitions.transitions_from_steps`)."""
-    return transitions_from_steps(episode_steps(episode, commands), config)
+    return transitions_from_steps(episode_steps(episode, commands, observations), config)
+
+
+def file_observations(path: Path) -> dict[tuple[Any, int, int], Any]:
+    """Every decodable ``observation`` of a log by (vehicle, episode, step)."""
+    out = {}
+    for msg in EpisodeLogReader(path).messages():
+        if msg.name == "observation":
+            try:
+                o = msg.decode()
+            except Exception:  # counted by the reader's report
+                continue
+            out[(msg.vehicle, int(o.episode), int(o.step))] = o
+    return out
 
 
 def body_commands(path: Path) -> dict[int, tuple]:
@@ -141,13 +168,13 @@ def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
             report.skip("corrupt record")
         if read.truncated or (read.skipped_bytes and not read.corrupt_chunks):
             report.skip(f"damaged or truncated log ({read.skipped_bytes} bytes unreadable)")
-        commands = body_commands(path)
+        commands, observations = body_commands(path), file_observations(path)
         for ep in episodes:
             if not ep.complete:
                 report.skip(f"incomplete: {ep.problem}")
                 continue
             try:
-                tr = rebuild_episode(ep, config, commands)
+                tr = rebuild_episode(ep, config, commands, observations)
             except (ValueError, AttributeError) as exc:
                 report.skip(f"inconsistent: {exc}")
                 continue
