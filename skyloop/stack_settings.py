@@ -78,6 +78,15 @@ def parse_params(items: tuple[str, ...] | list[str]) -> dict[str, float]:
 DEMO_SEED = 1000  # the seeds `skyloop up` and `skyloop demo` fly (episode i: seed + i)
 
 
+class ParamValues:
+    """``params``: a command's repeatable ``--param NAME=VALUE`` (its ``param`` field) as a
+    checked dict."""
+
+    @property
+    def params(self) -> dict[str, float]:
+        return parse_params(self.param)  # type: ignore[attr-defined]
+
+
 @dataclass(kw_only=True)
 class ScenarioFlag(Settings):
     scenario: str = "valley"
@@ -211,7 +220,7 @@ class MavlinkPorts(ApiPort):
 
 
 @dataclass(kw_only=True)
-class SimRules(ScenarioFlag):
+class SimRules(ParamValues, ScenarioFlag):
     """What the sim flies: the scenario, the episode limit, the lockstep wait and the
     vehicle's parameters."""
 
@@ -230,11 +239,6 @@ class SimRules(ScenarioFlag):
         at_least(self, "max_steps", 1)
         positive(self, "lockstep_timeout")
         parse_params(self.param)
-
-    @property
-    def params(self) -> dict[str, float]:
-        """``--param`` as a checked dict."""
-        return parse_params(self.param)
 
 
 @dataclass(kw_only=True)
@@ -298,7 +302,7 @@ class PolicyCommand(PolicyFlag, SecurityFlags, ApiPort, ClockFlags, BusFlags):
 
 
 @dataclass(kw_only=True)
-class BridgeCommand(SecurityFlags, MavlinkPorts, BusFlags):
+class BridgeCommand(ParamValues, SecurityFlags, MavlinkPorts, BusFlags):
     """``skyloop bridge``: the vehicle's MAVLink endpoint; commands go to the sim's
     commander over the bus."""
 
@@ -323,11 +327,6 @@ class BridgeCommand(SecurityFlags, MavlinkPorts, BusFlags):
         super().validate()
         positive(self, "command_timeout")
         parse_params(self.param)
-
-    @property
-    def params(self) -> dict[str, float]:
-        """``--param`` as a checked dict."""
-        return parse_params(self.param)
 
 
 @dataclass(kw_only=True)
