@@ -21,10 +21,10 @@ Timelines: ``step`` (control steps over the run, from the step clock) and ``sim_
 
 Targets (``--viz``): ``spawn`` (the native viewer; needs a display), ``web`` (the web
 viewer served on localhost: open the printed address; for a headless machine), and
-``save:PATH.rrd`` (a recording for ``rerun PATH.rrd`` later). A scan is drawn every
-``scan_every`` steps (default 5): a VLP-16 scan is ~20k points, every one of them would
-make a recording of a few episodes hundreds of MB; the live node also keeps only the
-newest scan when the viewer falls behind (counted).
+``save:PATH.rrd`` (a recording for ``rerun PATH.rrd`` later). The first scan is drawn,
+then one every ``scan_every`` steps (default 5): a VLP-16 scan is ~20k points, every one
+of them would make a recording of a few episodes hundreds of MB; while the live view is
+behind (over 64 messages queued) one every 10 x ``scan_every`` steps.
 """
 
 from __future__ import annotations
@@ -167,6 +167,7 @@ class RunView:
         self._ico_edges = np.array(sorted({(min(a, b), max(a, b)) for f in ico_faces
                                            for a, b in zip(f, [*f[1:], f[0]], strict=True)}))
         self.counts = {"scans_drawn": 0, "messages": 0}
+        self._scan_step: int | None = None  # the step of the last scan drawn
         rec.send_blueprint(blueprint())
         self._draw_vehicle()
 
@@ -300,8 +301,14 @@ class RunView:
                 rotation_axis_angles=[rr.RotationAxisAngle(axis=[0, 0, 1], radians=float(a))
                                       for a in yaw]))
 
+    def wants_scan(self, behind: bool = False) -> bool:
+        """Whether a scan at this step is drawn: the first one always, then one every
+        ``scan_every`` steps (every 10 x ``scan_every`` while a live feed is behind)."""
+        gap = self.scan_every * (10 if behind else 1)
+        return self._scan_step is None or self.step - self._scan_step >= gap
+
     def _scan(self, msg: Any) -> None:
-        if self.step % self.scan_every:
+        if not self.wants_scan():
             return
         from bus.messages import points_from_pointcloud
 
@@ -312,6 +319,7 @@ class RunView:
         self.rec.log("world/vehicle/lidar", self.rr.Points3D(pts, colors=range_colors(pts),
                                                              radii=[-1.5]))
         self.counts["scans_drawn"] += 1
+        self._scan_step = self.step
 
     def _observation(self, msg: Any) -> None:
         from bus import ros_view
@@ -449,8 +457,8 @@ class LiveFeed:
                 continue
             try:
                 if name == "lidar/points":
-                    if self.view.step % self.view.scan_every or self._q.qsize() > 64:
-                        continue  # not drawn at this step, or the viewer is behind
+                    if not self.view.wants_scan(behind=self._q.qsize() > 64):
+                        continue  # not drawn at this step (fewer while the view is behind)
                     msg = decode(msgtype("lidar/points"), msg)
                 self.view.handle(name, msg)
             except Exception:  # noqa: BLE001 - one bad message must not stop the view

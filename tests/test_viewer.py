@@ -81,6 +81,24 @@ def test_fan_triangles_give_each_face_its_triangles():
     assert c[0, 3] == 0.0 < c[1, 3] and c[1, 1] > c[2, 1]  # free unseen, nearer redder
 
 
+def test_the_first_scan_is_drawn_then_one_every_scan_every_steps():
+    """A short or loaded live run still shows a scan (the CI run of 507ca1e drew none:
+    each step's scan came while the feed was behind, and only multiples of
+    ``scan_every`` were drawn)."""
+    import rerun as rr
+
+    from skyloop.viewer import RunView
+
+    view = RunView(rr.RecordingStream("skyloop-test"), scan_every=5)
+    drawn = []
+    for step in range(3, 40):
+        view.step = step
+        if view.wants_scan(behind=step < 20):
+            drawn.append(step)
+            view._scan_step = step  # what drawing the scan records
+    assert drawn == [3, 20, 25, 30, 35]  # the first, one while behind, then every 5th
+
+
 def test_bad_logs_get_one_line_errors(tmp_path):
     (tmp_path / "random.mcap").write_bytes(np.random.default_rng(0).bytes(4096))
     (tmp_path / "empty").mkdir()
