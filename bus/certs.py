@@ -1,5 +1,6 @@
-"""``skyloop certs``: a certificate authority, one certificate per node, and the Zenoh
-configuration files that make the bus let no one in.
+"""A certificate authority, one certificate per node, and the Zenoh configuration files
+that make the bus let no one in (:func:`make_certs`; the ``skyloop certs`` command,
+``skyloop.tool_cli``).
 
 The bus of a stack that leaves loopback (docker, several hosts) runs through a router
 (``skyloop up --router``, ``docker/compose.yaml``) on a ``tls/`` endpoint with mutual
@@ -19,7 +20,6 @@ hand, is the ``openssl`` calls below.
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import subprocess
@@ -34,6 +34,8 @@ COMMANDER = "bridge"
 #: what the access control reserves to :data:`COMMANDER`
 VEHICLE_INPUTS = ("skyloop/*/cmd_vel", "skyloop/*/goal", "skyloop/*/params")
 VEHICLE_COMMANDS = ("skyloop/*/command",)
+#: how long the CA and the certificates are valid (days)
+DAYS = 825
 
 
 def _openssl(*args: str) -> None:
@@ -77,7 +79,7 @@ def zenoh_config(out: Path, node: str, nodes: Sequence[str]) -> dict:
 
 
 def make_certs(out_dir: str | Path, nodes: Sequence[str] = NODES,
-               hosts: Sequence[str] = (), days: int = 825) -> Path:
+               hosts: Sequence[str] = (), days: int = DAYS) -> Path:
     """Write ``ca.pem`` (and its key), ``<node>.pem``/``<node>.key.pem`` and
     ``<node>.json5`` for each node into ``out_dir``; returns it."""
     out = Path(out_dir).resolve()
@@ -103,19 +105,3 @@ def make_certs(out_dir: str | Path, nodes: Sequence[str] = NODES,
     ext.unlink()
     return out
 
-
-def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="skyloop certs", description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", default="certs", metavar="DIR", help="where (default: certs)")
-    p.add_argument("--nodes", nargs="+", default=list(NODES), metavar="NAME",
-                   help=f"one certificate each (default: {' '.join(NODES)})")
-    p.add_argument("--host", action="append", default=[], metavar="NAME",
-                   help="another DNS name the router is reached by (repeatable)")
-    p.add_argument("--days", type=int, default=825)
-    args = p.parse_args(argv)
-    out = make_certs(args.out, args.nodes, args.host, args.days)
-    print(f"wrote a CA, {len(args.nodes)} certificates and Zenoh configs into {out}; e.g. "
-          f"skyloop router --listen tls/localhost:7447 --zenoh-config {out}/router.json5, "
-          f"nodes: --mode client --connect tls/localhost:7447 --zenoh-config "
-          f"{out}/<node>.json5")
-    return 0

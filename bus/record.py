@@ -33,20 +33,17 @@ the bus messages). A world (built by a worker process, :class:`bus.ros_scene.Wor
 is written when ready; at stop the writer waits for it at most ``world_wait_s`` (1 s:
 the launcher's stop grace is 3 s for every node), then the view closes its worker.
 
-``main(argv)`` is the ``skyloop record`` command (``python -m bus.record`` works too).
+:func:`run_record` is what the ``skyloop record`` command runs (its flags:
+``skyloop.tool_cli.RecordCommand``).
 """
 
 from __future__ import annotations
 
-import argparse
 import functools
 import logging
-import signal
-import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -387,69 +384,3 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
         session.close()
     return RecordResult(writer.dir, counters)
 
-
-def build_parser() -> argparse.ArgumentParser:
-    """Arguments of ``skyloop record``."""
-    p = argparse.ArgumentParser(
-        prog="skyloop record",
-        description="Record every skyloop topic from the Zenoh bus into one MCAP file per "
-                    "run (ROS 2 schemas; a rosbag2 directory with metadata.yaml).")
-    p.add_argument("--out", default="logs", metavar="DIR",
-                   help="directory for run directories (default: logs)")
-    p.add_argument("--vehicle", default=None, help="record one vehicle (default: all)")
-    p.add_argument("--run-name", default=None,
-                   help="run directory name (default: run-<date>-<time>-<pid>)")
-    p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
-                   help="MCAP chunk compression (default: zstd, at bus.log.ZSTD_LEVEL). "
-                        "Measured on real VLP-16 scans of the stack (XYZIR, 4.5 m range), "
-                        "100-step episodes: 4.8 MB an episode with zstd, 6.0 with lz4, 7.9 "
-                        "with none; the recorder took ~1,700 scans/s with zstd and ~2,900 "
-                        "with none flat out (one run each on a loaded 2-core machine; "
-                        "`skyloop bench --only record`, benchmarks/RESULTS.md 2026-12-03)")
-    p.add_argument("--split-episodes", type=int, default=0, metavar="N",
-                   help="a new MCAP file of the run every N episodes, never inside one "
-                        "(default 0: one file)")
-    p.add_argument("--no-ros-view", action="store_true",
-                   help="only the bus messages: no TF, /clock, world, goal, path or "
-                        "icosahedron topics for Foxglove and RViz")
-    p.add_argument("--queue", type=int, default=512,
-                   help="messages buffered between Zenoh and the writer (default: 512)")
-    p.add_argument("--mode", choices=("peer", "client", "router"), default=None,
-                   help="Zenoh mode (default: $SKYLOOP_ZENOH_MODE or peer)")
-    p.add_argument("--connect", default=None,
-                   help="Zenoh endpoints to connect to, comma-separated")
-    p.add_argument("--listen", default=None, help="Zenoh endpoints to listen on")
-    p.add_argument("--zenoh-config", default=None, metavar="FILE",
-                   help="a Zenoh configuration file: TLS, access control "
-                        "(default: $ZENOH_CONFIG)")
-    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    return p
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``skyloop record``: record until SIGINT/SIGTERM, then print where the log is."""
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.split_episodes < 0:
-        parser.error(f"argument --split-episodes: must be 0 or more, got {args.split_episodes}")
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    cfg = SessionConfig.from_flags(args.mode, args.connect, args.listen, args.zenoh_config)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    result = run_record(args.out, cfg, stop, vehicle=args.vehicle, run_name=args.run_name,
-                        compression=args.compression, queue_size=args.queue,
-                        split_episodes=args.split_episodes, ros_view=not args.no_ros_view)
-    c = result.counters
-    print(f"recorded {c['written']} messages ({c['episodes_ended']} episodes ended) into "
-          f"{result.path}; dropped {c['dropped']}, undecodable {c['undecodable']}, "
-          f"unknown topic {c['unknown_topic']}, write errors {c['write_errors']}; "
-          f"derived {c['derived']} (TF, clock, markers, path), view errors "
-          f"{c['view_errors'] + c.get('scene_errors', 0)}",
-          flush=True)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

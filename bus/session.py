@@ -15,8 +15,8 @@ well-known *hub* endpoint, ``tcp/127.0.0.1:7447`` by default, ties them together
 
 Explicit ``listen`` / ``connect`` endpoints turn the hub logic off. Across hosts, or
 when an always-on rendezvous is wanted, run a router (``zenohd``, or :func:`run_router`:
-a Python session in router mode, no binary needed) and open every node in ``client``
-mode with ``connect`` pointing at it.
+a Python session in router mode, no binary needed; ``skyloop router`` runs it) and open
+every node in ``client`` mode with ``connect`` pointing at it.
 
 Environment (:meth:`SessionConfig.from_env`): ``SKYLOOP_ZENOH_MODE`` (peer, client,
 router), ``SKYLOOP_ZENOH_CONNECT`` and ``SKYLOOP_ZENOH_LISTEN`` (comma-separated
@@ -45,7 +45,7 @@ from dataclasses import dataclass, field, replace
 import zenoh
 
 __all__ = ["HUB", "LOOPBACK_ANY", "SessionConfig", "open_router", "open_session",
-           "router_main", "run_router"]
+           "run_router"]
 
 log = logging.getLogger("skyloop.bus")
 
@@ -236,31 +236,3 @@ def run_router(listen: Sequence[str] | str = (HUB,),
     finally:
         session.close()
 
-
-def router_main(argv: Sequence[str] | None = None) -> int:
-    """``skyloop router``: run the Python Zenoh router until SIGINT/SIGTERM."""
-    import argparse
-    import signal
-
-    parser = argparse.ArgumentParser(
-        prog="skyloop router",
-        description="Run a Zenoh router in this Python process (no zenohd needed); "
-                    "nodes reach it in client mode (SKYLOOP_ZENOH_MODE=client, "
-                    "SKYLOOP_ZENOH_CONNECT=<endpoint>).")
-    parser.add_argument("--listen", default=os.environ.get(ENV_LISTEN) or HUB,
-                        help=f"endpoints, comma-separated (default: $SKYLOOP_ZENOH_LISTEN "
-                             f"or {HUB}; use tcp/0.0.0.0:7447 to accept other hosts)")
-    parser.add_argument("--zenoh-config", default=os.environ.get(ENV_CONFIG) or None,
-                        metavar="FILE", help=f"a Zenoh configuration file: TLS, access "
-                                             f"control (default: ${ENV_CONFIG})")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        run_router(_endpoints(args.listen), stop,
-                   SessionConfig(mode="router", config_file=args.zenoh_config))
-    except ValueError as err:
-        parser.exit(2, f"skyloop router: {err}\n")
-    return 0

@@ -97,6 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
     from skyloop.stack_cli import add_stack_commands
 
     add_stack_commands(sub)
+    for name in ("record", "router", "certs"):
+        _generated(sub, name, TOOLS[name][2])
     p = sub.add_parser("learner", help="learn from live episodes on the bus, publish actor "
                        "weights that 'policy --weights-from-bus' nodes fly (see 'learner "
                        "--help')", add_help=False)
@@ -136,10 +138,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str]) -> int:
-    if argv and argv[0] in ("record", "router", "certs"):  # their own parsers take every flag
-        from skyloop.stack_cli import passthrough
-
-        return passthrough(argv[0], argv[1:])
     if argv and argv[0] in GENERATED:  # their parsers are generated from dataclasses (tyro)
         args = argparse.Namespace(command=argv[0], rest=argv[1:], func=GENERATED[argv[0]])
     elif argv and argv[0] in STACK:  # generated too (skyloop.stack_settings)

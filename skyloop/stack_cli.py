@@ -1,8 +1,8 @@
-"""The stack's subcommands: ``sim``, ``perception``, ``policy``, ``bridge``, ``record``,
-``router`` and ``up``. Each node is a thin binding of a core to the bus (see the
-``node.py`` of its package); this module only parses flags, opens the Zenoh session
-(``SKYLOOP_ZENOH_*`` environment, overridden by ``--mode/--connect/--listen``), handles
-SIGINT/SIGTERM and closes things in order.
+"""The stack's subcommands: ``sim``, ``perception``, ``policy``, ``bridge`` and ``up``
+(``record``, ``router`` and ``certs`` are in ``skyloop.tool_cli``). Each node is a thin
+binding of a core to the bus (see the ``node.py`` of its package); this module only
+parses flags, opens the Zenoh session (``SKYLOOP_ZENOH_*`` environment, overridden by
+``--mode/--connect/--listen``), handles SIGINT/SIGTERM and closes things in order.
 
 The options of ``sim``, ``perception``, ``policy``, ``bridge`` and ``up`` are generated
 from their settings dataclasses (``skyloop.stack_settings``) with tyro
@@ -204,34 +204,6 @@ def cmd_bridge(args: BridgeCommand) -> int:
     return 0
 
 
-def passthrough(name: str, argv: list[str]) -> int:
-    """``record``, ``router`` and ``certs`` parse their own flags (``bus.record``,
-    ``bus.session``, ``bus.certs``)."""
-    if name == "record":
-        from bus.record import main
-
-        return main(argv)
-    if name == "certs":
-        from bus.certs import main as certs_main
-
-        return certs_main(argv)
-    from bus.session import router_main
-
-    return router_main(argv)
-
-
-def cmd_record(args: argparse.Namespace) -> int:
-    return passthrough("record", args.rest)
-
-
-def cmd_router(args: argparse.Namespace) -> int:
-    return passthrough("router", args.rest)
-
-
-def cmd_certs(args: argparse.Namespace) -> int:
-    return passthrough("certs", args.rest)
-
-
 def cmd_up(args: UpCommand) -> int:
     from skyloop.launcher import run_up
 
@@ -277,19 +249,3 @@ def add_stack_commands(sub: Any) -> None:
         p = sub.add_parser(name, help=f"{text} (see '{name} --help')", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER)
         p.set_defaults(func=lambda args, name=name: run_node(name, args.rest))
-
-    p = sub.add_parser("record", help="record skyloop/** into MCAP (see 'record --help')",
-                       add_help=False)
-    p.add_argument("rest", nargs=argparse.REMAINDER)
-    p.set_defaults(func=cmd_record)
-
-    p = sub.add_parser("router", help="Python Zenoh router (see 'router --help')",
-                       add_help=False)
-    p.add_argument("rest", nargs=argparse.REMAINDER)
-    p.set_defaults(func=cmd_router)
-
-    p = sub.add_parser("certs", help="a CA, node certificates and Zenoh configs for a bus "
-                                     "with mutual TLS and access control (see 'certs --help')",
-                       add_help=False)
-    p.add_argument("rest", nargs=argparse.REMAINDER)
-    p.set_defaults(func=cmd_certs)

@@ -1,4 +1,5 @@
-"""``skyloop demo``, ``render``, ``bench``, ``view`` and ``viz``: their options generated
+"""``skyloop demo``, ``render``, ``bench``, ``view``, ``viz``, ``record``, ``router``,
+``certs``, ``plot``, ``log repair`` and ``experiment run|report``: their options generated
 from the dataclasses here with tyro (``skyloop.dataclass_cli.parse``), as the stack's
 commands are (``skyloop.stack_settings``): each default once, ``--help`` with choices and
 defaults, a bad value one line naming the flag (exit 2) before anything starts. What
@@ -11,24 +12,29 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import tyro
 
+from bus.certs import DAYS, NODES
+from bus.session import ENV_CONFIG, ENV_LISTEN, HUB
 from policy.training.settings import ConfigError
 from skyloop.dataclass_cli import parse
+from skyloop.settings_base import Repeated
 from skyloop.stack_settings import (
     DEMO_SEED,
     BusFlags,
     ScenarioFlag,
     Settings,
     ViewFlags,
+    ZenohFlags,
     at_least,
 )
 
-__all__ = ["COMMANDS", "BenchCommand", "DemoCommand", "ExperimentReportCommand",
-           "ExperimentRunCommand", "LogRepairCommand", "PlotCommand", "RenderCommand",
-           "ViewCommand", "VizCommand", "command_of", "parse_tool", "run_tool"]
+__all__ = ["COMMANDS", "BenchCommand", "CertsCommand", "DemoCommand",
+           "ExperimentReportCommand", "ExperimentRunCommand", "LogRepairCommand",
+           "PlotCommand", "RecordCommand", "RenderCommand", "RouterCommand", "ViewCommand",
+           "VizCommand", "command_of", "parse_tool", "run_tool"]
 
 
 @dataclass(kw_only=True)
@@ -103,6 +109,77 @@ class VizCommand(ViewFlags, BusFlags):
     scenario: Annotated[str | None, tyro.conf.arg(
         help_behavior_hint="(default: the first episode's)")] = None
     """build this scenario's world before declaring ready (skyloop up passes its own)"""
+
+
+@dataclass(kw_only=True)
+class RecordCommand(ZenohFlags):
+    """``skyloop record``: the recorder (``bus.record.run_record``)."""
+
+    out: Annotated[Path, tyro.conf.arg(metavar="DIR")] = Path("logs")
+    """directory for run directories"""
+    vehicle: Annotated[str | None, tyro.conf.arg(
+        metavar="VEHICLE", help_behavior_hint="(default: every one)")] = None
+    """record one vehicle"""
+    run_name: Annotated[str | None, tyro.conf.arg(
+        metavar="NAME", help_behavior_hint="(default: run-<date>-<time>-<pid>)")] = None
+    """run directory name"""
+    compression: Annotated[Literal["zstd", "lz4", "none"], tyro.conf.arg(help=(
+        "MCAP chunk compression (zstd at bus.log.ZSTD_LEVEL). Measured on real VLP-16 "
+        "scans of the stack (XYZIR, 4.5 m range), 100-step episodes: 4.8 MB an episode "
+        "with zstd, 6.0 with lz4, 7.9 with none; the recorder took ~1,700 scans/s with "
+        "zstd and ~2,900 with none flat out (one run each on a loaded 2-core machine; "
+        "`skyloop bench --only record`, benchmarks/RESULTS.md 2026-12-03)"))] = "zstd"
+    split_episodes: Annotated[int, tyro.conf.arg(metavar="N")] = 0
+    """a new MCAP file of the run every N episodes, never inside one (0: one file)"""
+    no_ros_view: Annotated[bool, tyro.conf.arg(help=(
+        "only the bus messages: no TF, /clock, world, goal, path or icosahedron topics for "
+        "Foxglove and RViz"))] = False
+    queue: Annotated[int, tyro.conf.arg(metavar="N")] = 512
+    """messages buffered between Zenoh and the writer"""
+
+    def validate(self) -> None:
+        super().validate()
+        at_least(self, "split_episodes", 0)
+        at_least(self, "queue", 1)
+        if self.vehicle is not None:
+            from bus.keys import check_vehicle
+
+            try:
+                check_vehicle(self.vehicle)
+            except ValueError as err:
+                raise ConfigError("vehicle", str(err)) from None
+
+
+@dataclass(kw_only=True)
+class RouterCommand(Settings):
+    """``skyloop router``: a Zenoh router in this process (``bus.session.run_router``)."""
+
+    listen: Annotated[str | None, tyro.conf.arg(
+        metavar="ENDPOINTS", help_behavior_hint=f"(default: ${ENV_LISTEN} or {HUB})")] = None
+    """endpoints, comma-separated (tcp/0.0.0.0:7447 accepts other hosts)"""
+    zenoh_config: Annotated[str | None, tyro.conf.arg(
+        metavar="FILE", help_behavior_hint=f"(default: ${ENV_CONFIG})")] = None
+    """a Zenoh configuration file: TLS certificates, access control (skyloop certs)"""
+
+
+@dataclass(kw_only=True)
+class CertsCommand(Settings):
+    """``skyloop certs``: a CA, node certificates and Zenoh configs (``bus.certs``)."""
+
+    out: Annotated[Path, tyro.conf.arg(metavar="DIR")] = Path("certs")
+    """where the CA, the certificates and the Zenoh configs go"""
+    nodes: Annotated[tuple[str, ...], tyro.conf.arg(metavar="NAME [NAME ...]")] = NODES
+    """one certificate (and Zenoh config) each"""
+    host: Annotated[tuple[str, ...], Repeated, tyro.conf.arg(metavar="NAME")] = ()
+    """another DNS name the router is reached by"""
+    days: Annotated[int, tyro.conf.arg(metavar="N")] = DAYS
+    """how long the CA and the certificates are valid"""
+
+    def validate(self) -> None:
+        super().validate()
+        if not self.nodes:
+            raise ConfigError("nodes", "expected at least one NAME")
+        at_least(self, "days", 1)
 
 
 @dataclass(kw_only=True)
@@ -227,6 +304,72 @@ def run_viz(args: VizCommand) -> int:
     return 0
 
 
+def run_record(args: RecordCommand) -> int:
+    """Record until SIGINT/SIGTERM, then print where the log is and its counters."""
+    import logging
+    import signal
+    import threading
+
+    from bus.record import run_record as record
+    from bus.session import SessionConfig
+
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    cfg = SessionConfig.from_flags(args.mode, args.connect, args.listen, args.zenoh_config)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    result = record(args.out, cfg, stop, vehicle=args.vehicle, run_name=args.run_name,
+                    compression=args.compression, queue_size=args.queue,
+                    split_episodes=args.split_episodes, ros_view=not args.no_ros_view)
+    c = result.counters
+    print(f"recorded {c['written']} messages ({c['episodes_ended']} episodes ended) into "
+          f"{result.path}; dropped {c['dropped']}, undecodable {c['undecodable']}, "
+          f"unknown topic {c['unknown_topic']}, write errors {c['write_errors']}; "
+          f"derived {c['derived']} (TF, clock, markers, path), view errors "
+          f"{c['view_errors'] + c.get('scene_errors', 0)}",
+          flush=True)
+    return 0
+
+
+def run_router(args: RouterCommand) -> int:
+    """Run the Python Zenoh router until SIGINT/SIGTERM; a config it cannot use (an
+    unreadable ``--zenoh-config``) is one line, exit 2."""
+    import logging
+    import os
+    import signal
+    import sys
+    import threading
+
+    from bus.session import SessionConfig
+    from bus.session import run_router as router
+
+    listen = args.listen if args.listen is not None else os.environ.get(ENV_LISTEN) or HUB
+    config = (args.zenoh_config if args.zenoh_config is not None
+              else os.environ.get(ENV_CONFIG) or None)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        router(listen, stop, SessionConfig(mode="router", config_file=config))
+    except ValueError as err:
+        print(f"skyloop router: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def run_certs(args: CertsCommand) -> int:
+    from bus.certs import make_certs
+
+    out = make_certs(args.out, args.nodes, args.host, args.days)
+    print(f"wrote a CA, {len(args.nodes)} certificates and Zenoh configs into {out}; e.g. "
+          f"skyloop router --listen tls/localhost:7447 --zenoh-config {out}/router.json5, "
+          f"nodes: --mode client --connect tls/localhost:7447 --zenoh-config "
+          f"{out}/<node>.json5")
+    return 0
+
+
 def run_plot(args: PlotCommand) -> int:
     from policy.training.plots import plot_runs
 
@@ -272,6 +415,15 @@ COMMANDS: dict[str, tuple[type, Callable[[Any], int], str]] = {
               "measure speed against peers; prints a table, writes JSON"),
     "view": (ViewCommand, run_view, "show a recorded run in 3D (Rerun)"),
     "viz": (VizCommand, run_viz, "live 3D view node (Rerun) of one vehicle on the bus"),
+    "record": (RecordCommand, run_record,
+               "record every skyloop topic on the bus into MCAP, a run directory each (ROS 2 "
+               "schemas, rosbag2 metadata.yaml)"),
+    "router": (RouterCommand, run_router,
+               "a Zenoh router in this Python process (no zenohd needed); nodes reach it in "
+               "client mode"),
+    "certs": (CertsCommand, run_certs,
+              "a CA, node certificates and Zenoh configs for a bus with mutual TLS and "
+              "access control"),
     "plot": (PlotCommand, run_plot, "success/collision curves of one or more training runs"),
     "log repair": (LogRepairCommand, run_log_repair,
                    "write an indexed, finished copy of a log whose writer died (SIGKILL, "

@@ -18,7 +18,6 @@ from bus.session import (
     SessionConfig,
     open_router,
     open_session,
-    router_main,
     run_router,
 )
 
@@ -127,8 +126,10 @@ def test_run_router_until_stopped():
     stop.set()
     thread.join(5.0)
     assert not thread.is_alive()
-    with pytest.raises(SystemExit) as exc:  # the future 'skyloop router' command
-        router_main(["--help"])
+    from skyloop.tool_cli import parse_tool
+
+    with pytest.raises(SystemExit) as exc:  # the 'skyloop router' command
+        parse_tool(["router", "--help"])
     assert exc.value.code == 0
 
 

@@ -1,4 +1,5 @@
 """The stack's commands (``skyloop sim``, ``perception``, ``policy``, ``bridge``, ``up``)
+and the others of ``skyloop.tool_cli`` (``record``, ``router``, ``certs``, ``demo``, ...)
 have options generated from their settings dataclasses (``skyloop.stack_settings``,
 tyro): every flag they had keeps its name and meaning, ``--help`` shows each default
 (the dataclass's) and the choices, and a bad value is one line naming the flag, exit 2,
@@ -47,6 +48,11 @@ FLAGS = {
     "bench": ["--quick", "--json", "--only", "--minutes"],
     "view": ["--vehicle", "--viz", "--scan-every", "--web-port", "--grpc-port"],
     "viz": [*BUS, "--scenario", "--viz", "--scan-every", "--web-port", "--grpc-port"],
+    "record": ["--out", "--vehicle", "--run-name", "--compression", "--split-episodes",
+               "--no-ros-view", "--queue", "--mode", "--connect", "--listen", "--zenoh-config",
+               "-v", "--verbose"],
+    "router": ["--listen", "--zenoh-config"],
+    "certs": ["--out", "--nodes", "--host", "--days"],
     "plot": ["--out"],
     "log repair": ["--out"],
     "experiment run": ["--out", "--max-concurrent", "--address", "--cpus-per-trial"],
@@ -113,7 +119,7 @@ def test_every_flag_is_kept_and_help_shows_its_default(helps, name):
              "minutes": "(default: 60; --quick: 2)", "vehicle": "(default: every one)",
              "scenario": "(default: the first episode's)", "out": "beside the source run",
              "max_concurrent": "CPUs per trial", "address": "$RAY_ADDRESS",
-             "cpus_per_trial": "1 for sync trials"}
+             "cpus_per_trial": "1 for sync trials", "run_name": "run-<date>-<time>-<pid>"}
     for f in fields(cls):
         if f.name in POSITIONAL:
             box = helps[name].split("positional arguments", 1)[1].split("╰", 1)[0]
@@ -128,6 +134,8 @@ def test_every_flag_is_kept_and_help_shows_its_default(helps, name):
             assert hints[f.name] in entry, entry
         elif f.name == "lockstep":
             assert entry.endswith("(the default)"), entry
+        elif isinstance(f.default, tuple):  # several values: as they are typed
+            assert entry.endswith(f"(default: {' '.join(f.default)})"), entry
         else:
             shown = re.search(r"\(default: (.*?)\)$", entry)
             assert shown and shown.group(1) == str(f.default), (name, f.name, entry)
@@ -209,6 +217,13 @@ BAD = [
     ("experiment run", ["g.toml", "--out", "o", "--cpus-per-trial", "x"], "--cpus-per-trial",
      "x"),
     ("experiment report", ["d", "--eval-episodes", "-1"], "--eval-episodes", "-1"),
+    ("record", ["--split-episodes", "-1"], "--split-episodes", "-1"),
+    ("record", ["--queue", "0"], "--queue", "0"),
+    ("record", ["--compression", "bogus"], "--compression", "bogus"),
+    ("record", ["--vehicle", "a/b"], "--vehicle", "a/b"),
+    ("record", ["--mode", "router"], "--mode", "router"),
+    ("certs", ["--days", "0"], "--days", "0"),
+    ("certs", ["--nodes"], "--nodes", "NAME"),
 ]
 
 
@@ -221,6 +236,33 @@ def test_a_bad_value_is_one_line_naming_the_flag(capsys, name, argv, bad_flag, v
     assert err.count("\n") == 1, err
     assert err.startswith(f"skyloop {name}: error: argument {bad_flag}: "), err
     assert value in err, err
+
+
+@pytest.mark.parametrize("argv, bad_flag", [
+    (["record", "--split-episodes", "-1"], "--split-episodes"),
+    (["certs", "--days", "0"], "--days"),
+    (["record", "--compression", "bogus"], "--compression"),
+])
+def test_record_and_certs_refuse_a_bad_value_in_one_line(tmp_path, argv, bad_flag):
+    """Through the ``skyloop`` command, as a user runs it: exit 2, one line naming the
+    flag, no traceback, nothing written."""
+    proc = subprocess.run([sys.executable, "-m", "skyloop", *argv, "--out",
+                           str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.startswith(f"skyloop {argv[0]}: error: argument {bad_flag}: "), \
+        proc.stderr
+    assert proc.stdout == "" and not (tmp_path / "out").exists()
+
+
+def test_router_refuses_a_zenoh_config_it_cannot_read(tmp_path):
+    missing = tmp_path / "router.json5"
+    proc = subprocess.run([sys.executable, "-m", "skyloop", "router", "--listen",
+                           "tcp/127.0.0.1:0", "--zenoh-config", str(missing)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr == f"skyloop router: Zenoh config {missing} (--zenoh-config or " \
+                          f"ZENOH_CONFIG): no such file\n", proc.stderr
 
 
 def test_a_bad_value_stops_up_before_anything_starts(tmp_path):
@@ -296,6 +338,51 @@ def test_tool_command_lines_give_the_settings_they_say():
     assert UpCommand().viz_scan_every == parse_tool(["viz"]).scan_every
 
 
+def test_record_router_and_certs_give_the_settings_they_say(helps):
+    from bus.certs import NODES as CERT_NODES
+    from bus.session import HUB
+
+    # what the launcher starts with --log-dir (skyloop.launcher.run_up)
+    record = parse_any(["record", "--out", "runs/logs", "--vehicle", "uav2",
+                        "--split-episodes", "3", "--compression", "lz4"])
+    assert (record.out, record.vehicle, record.split_episodes, record.compression) == (
+        Path("runs/logs"), "uav2", 3, "lz4")
+    record = parse_any(["record", "--run-name", "k", "--no-ros-view", "--queue", "64", "-v",
+                        "--mode", "client", "--connect", "tcp/r:7447", "--zenoh-config", "z"])
+    assert (record.run_name, record.no_ros_view, record.queue, record.verbose, record.mode,
+            record.connect, record.zenoh_config) == ("k", True, 64, True, "client",
+                                                     "tcp/r:7447", "z")
+    default = parse_any(["record"])
+    assert (default.out, default.vehicle, default.compression, default.split_episodes,
+            default.queue, default.no_ros_view) == (Path("logs"), None, "zstd", 0, 512, False)
+    router = parse_any(["router", "--listen", "tls/0.0.0.0:7447", "--zenoh-config", "r.json5"])
+    assert (router.listen, router.zenoh_config) == ("tls/0.0.0.0:7447", "r.json5")
+    assert parse_any(["router"]).listen is None  # $SKYLOOP_ZENOH_LISTEN or the hub, at run
+    certs = parse_any(["certs", "--out", "c", "--nodes", "router", "sim", "--host", "a",
+                       "--host", "b", "--days", "30"])
+    assert (certs.out, certs.nodes, certs.host, certs.days) == (
+        Path("c"), ("router", "sim"), ("a", "b"), 30)
+    assert parse_any(["certs"]).nodes == CERT_NODES
+    record_help, router_help, certs_help = (help_entries(helps[n])
+                                            for n in ("record", "router", "certs"))
+    assert "{zstd,lz4,none}" in record_help["--compression"]
+    assert "4.8 MB an episode with zstd" in record_help["--compression"]
+    assert record_help["--compression"].endswith("(default: zstd)")
+    assert record_help["--out"].endswith("(default: logs)")
+    assert "(default: every one)" in record_help["--vehicle"]
+    assert "--mode {peer,client}" in record_help["--mode"]
+    assert f"(default: $SKYLOOP_ZENOH_LISTEN or {HUB})" in router_help["--listen"]
+    assert "(default: $ZENOH_CONFIG)" in router_help["--zenoh-config"]
+    assert certs_help["--nodes"].endswith(f"(default: {' '.join(CERT_NODES)})")
+    assert certs_help["--days"].endswith("(default: 825)")
+    assert certs_help["--out"].endswith("(default: certs)")
+    assert "(repeatable)" in certs_help["--host"]
+    listed = subprocess.run([sys.executable, "-m", "skyloop", "--help"], capture_output=True,
+                            text=True, timeout=120).stdout
+    for name in ("record", "router", "certs"):
+        assert re.search(rf"^    {name} +\S", listed, re.M), listed  # with its help text
+
+
 def test_a_bare_viz_means_spawn():
     assert parse_node(["up"]).viz is None
     assert parse_node(["up", "--viz"]).viz == "spawn"
@@ -345,9 +432,9 @@ def test_other_compose_files_parse():
             command = [re.sub(r"\$\{[A-Z0-9_]+:-([^}]*)\}", r"\1", str(a))
                        for a in (service or {}).get("command") or []]
             if command and command[0] in COMMANDS:
-                parse_node(command)
+                parse_any(command)
                 seen.add(command[0])
-    assert {"sim", "perception", "policy", "bridge"} <= seen
+    assert {"sim", "perception", "policy", "bridge", "record", "router"} <= seen
 
 
 # ----------------------------------------------------------------------------- learner
