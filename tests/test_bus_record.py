@@ -1,7 +1,7 @@
 """bus.record over real Zenoh on loopback: a fake run of every topic type published from
 one session is recorded by another into MCAP and read back with matching counts; bad
-payloads and a full queue are counted; run_record/main; a SIGKILLed recorder process
-loses at most the episode in progress."""
+payloads and a full queue are counted; run_record and ``skyloop record``; a SIGKILLed
+recorder process loses at most the episode in progress."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from bus import keys
 from bus import messages as m
 from bus.log import EpisodeLogWriter, read_episodes
 from bus.node import Bus
-from bus.record import Recorder, build_parser, main, run_record
+from bus.record import Recorder, run_record
 from bus.session import SessionConfig, open_session
 
 REPO = Path(__file__).resolve().parents[1]
@@ -207,13 +207,15 @@ def test_run_record_until_stopped(tmp_path):
 
 
 def test_main_help(capsys):
+    from skyloop.tool_cli import parse_tool
+
     with pytest.raises(SystemExit) as exc:
-        main(["--help"])
+        parse_tool(["record", "--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "--out" in out and "--vehicle" in out and "skyloop record" in out
-    assert build_parser().parse_args([]).compression == "zstd"
-    assert build_parser().parse_args(["--compression", "none"]).compression == "none"
+    assert parse_tool(["record"]).compression == "zstd"
+    assert parse_tool(["record", "--compression", "none"]).compression == "none"
 
 
 def test_sigkilled_recorder_loses_at_most_the_open_episode(tmp_path):
@@ -221,8 +223,8 @@ def test_sigkilled_recorder_loses_at_most_the_open_episode(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO), "SKYLOOP_ZENOH_HUB": hub}
     with Bus.open(SessionConfig(hub=hub)) as bus:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "bus.record", "--out", str(tmp_path), "--run-name", "k",
-             "--vehicle", "uav1"], cwd=REPO, env=env,
+            [sys.executable, "-m", "skyloop", "record", "--out", str(tmp_path), "--run-name",
+             "k", "--vehicle", "uav1"], cwd=REPO, env=env,
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         try:
             run = FakeRun(bus)

@@ -59,13 +59,13 @@ def test_compose_shape():
 
 def test_commands_parse():
     from skyloop.stack_cli import COMMANDS
+    from skyloop.tool_cli import COMMANDS as TOOLS
+    from skyloop.tool_cli import parse_tool
 
     for name, cmd in node_commands().items():
         assert cmd[0] == name
-        if name == "record":
-            from bus.record import build_parser as record_parser
-
-            record_parser().parse_args(cmd[1:])
+        if name in TOOLS:  # record
+            assert isinstance(parse_tool(cmd), TOOLS[name][0])
         else:
             assert isinstance(parse_node(cmd), COMMANDS[name][0])
 
