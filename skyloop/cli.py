@@ -28,10 +28,12 @@ def _cmd_health(args: argparse.Namespace) -> int:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from policy.training.evaluate import EvalConfig, evaluate, format_summary
+    from policy.training.settings import EvalConfig  # light: parsing imports no torch
     from skyloop.dataclass_cli import parse
 
     c = parse(EvalConfig, args.rest, prog="skyloop eval", description=EVAL_HELP)
+    from policy.training.evaluate import evaluate, format_summary
+
     summary = evaluate(c.policy, c.scenario, c.episodes, c.seed, c.json_path,
                        worlds=c.worlds, validation=c.validation)
     print(format_summary(summary))

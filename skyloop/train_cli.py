@@ -1,7 +1,11 @@
-"""``skyloop train``: its options are generated from ``policy.training.train.TrainConfig`` with tyro
+"""``skyloop train``: its options are generated from ``TrainConfig`` with tyro
 (``skyloop.dataclass_cli``), so each default lives once, in the dataclass, and
 ``--help`` shows it with the choices. The few options that are not the run's config
-(where it goes, resuming, learning from logs) are ``TrainCommand``'s own fields."""
+(where it goes, resuming, learning from logs) are ``TrainCommand``'s own fields.
+
+``TrainConfig`` lives in the light ``policy.training.settings`` (``policy.training.train``
+re-exports it): parsing imports no torch, so ``--help`` and a bad command line answer at
+once; the trainer and the offline learner are imported only to run."""
 
 from __future__ import annotations
 
@@ -13,9 +17,7 @@ from typing import Annotated
 
 import tyro
 
-from policy.logs.offline import UPDATES
-from policy.training.settings import ConfigError
-from policy.training.train import TrainConfig
+from policy.training.settings import OFFLINE_UPDATES, ConfigError, TrainConfig
 from skyloop.dataclass_cli import parse
 
 __all__ = ["TrainCommand", "main", "parse_train", "run_train"]
@@ -39,7 +41,7 @@ class TrainCommand:
     # the run's --reward and --seed apply to it; the other TrainConfig options do not
     from_logs: Annotated[tuple[Path, ...] | None, tyro.conf.arg(metavar="LOG [LOG ...]")] = None
     """learn offline from episode logs (MCAP files or run directories) instead"""
-    updates: int = UPDATES
+    updates: int = OFFLINE_UPDATES
     """with --from-logs: TD3 updates"""
     bc: bool = False
     """with --from-logs: TD3+BC instead of TD3"""

@@ -208,3 +208,32 @@ def test_help_piped_into_head_prints_its_lines_and_no_traceback():
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
     assert proc.stdout.startswith("usage: skyloop train") and proc.stdout.count("\n") == 3
+
+
+NO_TORCH = """
+import contextlib, io, sys
+from skyloop.cli import main
+with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+    try:
+        main(sys.argv[1:])
+    except SystemExit as exit_:
+        code = exit_.code
+    else:
+        code = None
+print(code, "torch" in sys.modules)
+"""
+
+
+@pytest.mark.parametrize("args", [["train", "--help"], ["train", "--episodes", "-1", "--out", "o"],
+                                  ["eval", "--help"], ["eval", "--episodes", "0"],
+                                  ["learner", "--help"], ["health", "--help"]])
+def test_help_and_a_bad_command_line_import_no_torch(args):
+    """The parse path is light (``TrainConfig``, ``EvalConfig`` in
+    ``policy.training.settings``): ``--help`` or a one-line error answers in a fraction of
+    a second instead of importing torch, the env and the trainer first."""
+    proc = subprocess.run([sys.executable, "-c", NO_TORCH, *args], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    code, torch_imported = proc.stdout.split()
+    assert code == ("0" if "--help" in args else "2"), proc.stdout
+    assert torch_imported == "False", f"skyloop {' '.join(args)} imported torch"

@@ -60,6 +60,7 @@ from policy.logs.transitions import (  # noqa: F401 - Transitions, terminal_obse
     terminal_observation,
     transitions_from_steps,
 )
+from policy.training.settings import OFFLINE_UPDATES
 
 
 @dataclass
@@ -200,7 +201,7 @@ class TD3BC(TD3):
         return -lam * q.mean() + (pi - self._bc_action).pow(2).mean()
 
 
-UPDATES = 10_000  # TD3 updates from the logs (``skyloop train --from-logs --updates``)
+UPDATES = OFFLINE_UPDATES  # TD3 updates from the logs (``skyloop train --from-logs --updates``)
 
 
 def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: int = UPDATES,

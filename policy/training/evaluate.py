@@ -12,13 +12,10 @@ from __future__ import annotations
 
 import json
 import zipfile
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, ClassVar
 
 import numpy as np
 import torch
-import tyro
 from tqdm import tqdm
 
 from bus.task import TASK, TaskSpec
@@ -26,37 +23,12 @@ from policy.algorithms.scripted import StraightLineController
 from policy.algorithms.td3 import load_actor
 from policy.training.env import UavNavEnv
 from policy.training.rollout import run_episode, summarize
-from policy.training.settings import check_at_least
+from policy.training.settings import (  # noqa: F401 - re-exported: EvalConfig lives in the
+    EVAL_SEED,  # light settings module, so `skyloop eval --help` needs no torch
+    EvalConfig,
+)
 
-EVAL_SEED = 1_000_000_000
 SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "shipped" / "td3_abr_valley" / "actor.pt"
-
-
-@dataclass
-class EvalConfig:
-    """One evaluation (``evaluate``'s arguments). ``skyloop eval``'s options are generated
-    from these fields (``skyloop.dataclass_cli``, with tyro): each default lives here."""
-
-    policy: Annotated[str | None, tyro.conf.arg(metavar="ACTOR|RUN_DIR|scripted")] = None
-    """actor file or run directory (its actor.pt), or scripted; None: the shipped policy"""
-    scenario: str = "valley"
-    """a world, or family:NAME with --worlds"""
-    # world seeds never drawn in training (sitl/families.py)
-    worlds: Annotated[int | None, tyro.conf.arg(metavar="N")] = None
-    """with --scenario family:NAME: fly N held-out worlds of the family, episodes spread"""
-    validation: bool = False
-    """with --worlds: the validation worlds instead (to choose among trained policies)"""
-    episodes: int = 500
-    """episodes to fly"""
-    seed: int = EVAL_SEED
-    """episode i's seed is SEED + i (the default: seeds no training run draws)"""
-    json_path: Annotated[Path | None, tyro.conf.arg(name="json", metavar="PATH")] = None
-    """write the summary as JSON here"""
-
-    AT_LEAST: ClassVar[dict[str, int]] = {"episodes": 1, "worlds": 1}
-
-    def __post_init__(self) -> None:
-        check_at_least(self, self.AT_LEAST)
 
 
 def _torch_error(path: Path, exc: Exception) -> str:

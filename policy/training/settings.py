@@ -3,19 +3,36 @@ names the field and its command-line flag, raised when the dataclass is construc
 (``__post_init__``), so a bad value never gets as far as starting a run. The
 ``skyloop`` commands whose options are generated from these dataclasses
 (``skyloop.dataclass_cli``) print it as argparse's one line:
-``skyloop train: error: argument --episodes: must be at least 1, got -1``."""
+``skyloop train: error: argument --episodes: must be at least 1, got -1``.
+
+Light on purpose (tyro, no torch, no env): ``TrainConfig`` and ``EvalConfig`` live here so
+that ``skyloop train``/``skyloop eval`` answer ``--help`` or a bad command line without
+importing torch; ``policy.training.train`` and ``policy.training.evaluate`` re-export them."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Literal
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, ClassVar, Literal, get_args
 
-__all__ = ["Algo", "ConfigError", "Reward", "check_at_least"]
+import tyro
+
+__all__ = ["EVAL_SEED", "OFFLINE_UPDATES", "Algo", "ConfigError", "EvalConfig", "Precision",
+           "Reward", "TrainConfig", "check_at_least"]
 
 #: the agents (the keys of ``policy.algorithms.agents.ALGOS``) and the goal rewards (of
 #: ``policy.algorithms.rewards.GOAL_REWARDS``) a command line may choose (tests check they agree)
 Algo = Literal["td3", "ddpg"]
 Reward = Literal["tr", "ngr", "egr", "abr"]
+Precision = Literal["fp32", "bf16"]  # the keys of policy.algorithms.td3.PRECISIONS
+
+#: TD3 updates from logs (``skyloop train --from-logs --updates``;
+#: ``policy.logs.offline.UPDATES``)
+OFFLINE_UPDATES = 10_000
+#: the first evaluation seed: above every small-seed run's training episode seeds
+#: (``policy.training.evaluate``)
+EVAL_SEED = 1_000_000_000
 
 
 class ConfigError(ValueError):
@@ -41,3 +58,133 @@ def check_at_least(config: object, least: Mapping[str, int]) -> None:
         if value < bound:
             word = "0 or more" if bound == 0 else f"at least {bound}"
             raise ConfigError(name, f"must be {word}, got {value}")
+
+
+@dataclass
+class TrainConfig:
+    """One training run. Each default here is the only one: ``skyloop train``'s options
+    are generated from these fields (``skyloop.train_cli``, with tyro), and grid files
+    set them by name (``skyloop.experiment.grid``)."""
+
+    algo: Algo = "td3"
+    """the agent"""
+    reward: Reward = "abr"
+    """the goal reward: TR, NGR, EGR or ABR (abr-method.md)"""
+    # sitl/families.py; --world-every keeps a drawn world for several episodes
+    scenario: str = "valley"
+    """a world: valley, forest, city, dynamic, a file, NAME#SEED; or family:NAME, mix:A,B"""
+    episodes: int = 5000
+    """episodes to train (in total, counting those before a --resume)"""
+    seed: int = 0
+    """the run's seed (networks, exploration); episode i has seed * 1_000_003 + i"""
+    start_steps: int = 10_000
+    """initial uniformly random steps (abr-method.md: 10,000)"""
+    buffer_size: int = 1_000_000
+    """replay buffer capacity in transitions"""
+    checkpoint_every: int = 100
+    """write a checkpoint every N episodes (and at the end)"""
+    snapshot_every: int = 0
+    """keep the actor every N episodes as OUT/snapshots/actor-ep<N>.pt, to pick one by
+    validation worlds afterwards (0: only the last, OUT/actor.pt)"""
+    lidar_max_range: float = 4.5
+    """the simulated LiDAR's range, m (the observation needs points within 4 m)"""
+    threads: int = 1
+    """the learner's torch threads"""
+    sync: bool = False
+    """envs and learner in turn in one process: reproducible (else a collector process)"""
+    envs: int = 1
+    """envs stepped in turn by the collector"""
+    max_lead: int = 8
+    """parallel mode: env steps the collector may run ahead of the updates"""
+    device: str = "cpu"
+    """the learner's device: cpu, cuda, cuda:1, ..."""
+    # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32
+    # weights and Adam; policy.algorithms.td3.best_precision says whether it pays on a machine
+    precision: Precision = "fp32"
+    """the update's arithmetic: fp32, or bf16 matmuls with float32 weights and Adam"""
+    env: str = ""
+    """a Gymnasium env id instead of --scenario, e.g. BipedalWalkerHardcore-v3"""
+    world_every: int = 1
+    """family:/mix: scenarios: a new world every N episodes"""
+    goal_return: float = 0.0
+    """with --env: the episodic return that counts as reaching the goal"""
+    # not flags: the tqdm bar (off under Ray Tune, which reports for itself), and
+    # free-form entries recorded in the run's config.json
+    progress: tyro.conf.Suppress[bool] = True
+    extra: tyro.conf.Suppress[dict] = field(default_factory=dict)
+
+    # the least value of each count; a smaller one is refused on construction
+    AT_LEAST: ClassVar[dict[str, int]] = {
+        "episodes": 1, "start_steps": 0, "buffer_size": 1, "checkpoint_every": 1,
+        "threads": 1, "envs": 1, "max_lead": 1, "world_every": 1,
+        "snapshot_every": 0}
+
+    def __post_init__(self) -> None:
+        self.check()
+
+    def check(self) -> None:
+        """The cheap checks: counts in range, choices among the known ones. Raises
+        ``ConfigError`` naming the flag; runs on construction, so a bad value never
+        gets as far as starting a run."""
+        check_at_least(self, self.AT_LEAST)
+        # the Literals' choices (tests check they are ALGOS, GOAL_REWARDS, PRECISIONS)
+        if self.algo not in get_args(Algo):
+            raise ConfigError("algo", f"unknown algorithm {self.algo!r}; choose from "
+                                      f"{sorted(get_args(Algo))}")
+        if self.reward not in get_args(Reward):
+            raise ConfigError("reward", f"unknown reward {self.reward!r}; choose from "
+                                        f"{sorted(get_args(Reward))}")
+        if self.precision not in get_args(Precision):
+            raise ConfigError("precision", f"must be one of {sorted(get_args(Precision))}, "
+                                           f"got {self.precision!r}")
+
+    def validate(self) -> None:
+        """``check``, then what costs more: the device, the scenario or env id."""
+        import torch
+
+        from sitl.families import check_scenario  # ScenarioError naming the scenario
+
+        self.check()  # the fields may have been changed since construction
+        try:
+            torch.empty(0, device=self.device)
+        except (RuntimeError, AssertionError) as exc:
+            raise ValueError(f"--device {self.device!r} is not usable here ({exc})") from exc
+        if self.env:
+            from policy.training.gym_task import check_env_id
+
+            check_env_id(self.env)
+        else:
+            check_scenario(self.scenario)
+
+    @property
+    def task(self) -> str:
+        """What the run learns: the Gymnasium env id or the scenario name."""
+        return self.env or self.scenario
+
+
+@dataclass
+class EvalConfig:
+    """One evaluation (``policy.training.evaluate.evaluate``'s arguments). ``skyloop eval``'s
+    options are generated from these fields (``skyloop.dataclass_cli``, with tyro): each
+    default lives here."""
+
+    policy: Annotated[str | None, tyro.conf.arg(metavar="ACTOR|RUN_DIR|scripted")] = None
+    """actor file or run directory (its actor.pt), or scripted; None: the shipped policy"""
+    scenario: str = "valley"
+    """a world, or family:NAME with --worlds"""
+    # world seeds never drawn in training (sitl/families.py)
+    worlds: Annotated[int | None, tyro.conf.arg(metavar="N")] = None
+    """with --scenario family:NAME: fly N held-out worlds of the family, episodes spread"""
+    validation: bool = False
+    """with --worlds: the validation worlds instead (to choose among trained policies)"""
+    episodes: int = 500
+    """episodes to fly"""
+    seed: int = EVAL_SEED
+    """episode i's seed is SEED + i (the default: seeds no training run draws)"""
+    json_path: Annotated[Path | None, tyro.conf.arg(name="json", metavar="PATH")] = None
+    """write the summary as JSON here"""
+
+    AT_LEAST: ClassVar[dict[str, int]] = {"episodes": 1, "worlds": 1}
+
+    def __post_init__(self) -> None:
+        check_at_least(self, self.AT_LEAST)

@@ -60,21 +60,19 @@ import os
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from functools import partial
 from pathlib import Path
-from typing import ClassVar, Literal
 
 import numpy as np
 import torch
-import tyro
 from tqdm import tqdm
 
 from bus.task import episode_outcome
-from policy.algorithms.agents import ALGOS, make_agent, make_goal_reward
+from policy.algorithms.agents import make_agent, make_goal_reward
 from policy.algorithms.replay import ReplayBuffer
-from policy.algorithms.rewards import GOAL_REWARDS, RewardConfig
-from policy.algorithms.td3 import PRECISIONS, flush_denormals
+from policy.algorithms.rewards import RewardConfig
+from policy.algorithms.td3 import flush_denormals
 from policy.training.collector import (
     Collector,
     CollectorSpec,
@@ -84,7 +82,12 @@ from policy.training.collector import (
 )
 from policy.training.env import UavNavEnv
 from policy.training.plots import CSV_NAME, plot_runs
-from policy.training.settings import Algo, ConfigError, Reward, check_at_least
+from policy.training.settings import (  # noqa: F401 - re-exported: the run's config
+    Algo,  # lives in the light settings module, so `skyloop train --help` needs no torch
+    Precision,
+    Reward,
+    TrainConfig,
+)
 
 CHECKPOINT = "checkpoint.pt"
 RESULT = "result.json"  # written last: the run is finished
@@ -100,108 +103,6 @@ CSV_FIELDS = ["episode", "return", "steps", "outcome", "success_rate_500",
               "abr_patterns", "abr_new_patterns", "abr_groups",
               "world"]  # the world the episode flew (family:/mix: scenarios draw one)
 WINDOW = 500  # success rate over the last 500 episodes (abr-method.md)
-
-
-Precision = Literal["fp32", "bf16"]  # the keys of policy.algorithms.td3.PRECISIONS
-
-
-@dataclass
-class TrainConfig:
-    """One training run. Each default here is the only one: ``skyloop train``'s options
-    are generated from these fields (``skyloop.train_cli``, with tyro), and grid files
-    set them by name (``skyloop.experiment.grid``)."""
-
-    algo: Algo = "td3"
-    """the agent"""
-    reward: Reward = "abr"
-    """the goal reward: TR, NGR, EGR or ABR (abr-method.md)"""
-    # sitl/families.py; --world-every keeps a drawn world for several episodes
-    scenario: str = "valley"
-    """a world: valley, forest, city, dynamic, a file, NAME#SEED; or family:NAME, mix:A,B"""
-    episodes: int = 5000
-    """episodes to train (in total, counting those before a --resume)"""
-    seed: int = 0
-    """the run's seed (networks, exploration); episode i has seed * 1_000_003 + i"""
-    start_steps: int = 10_000
-    """initial uniformly random steps (abr-method.md: 10,000)"""
-    buffer_size: int = 1_000_000
-    """replay buffer capacity in transitions"""
-    checkpoint_every: int = 100
-    """write a checkpoint every N episodes (and at the end)"""
-    snapshot_every: int = 0
-    """keep the actor every N episodes as OUT/snapshots/actor-ep<N>.pt, to pick one by
-    validation worlds afterwards (0: only the last, OUT/actor.pt)"""
-    lidar_max_range: float = 4.5
-    """the simulated LiDAR's range, m (the observation needs points within 4 m)"""
-    threads: int = 1
-    """the learner's torch threads"""
-    sync: bool = False
-    """envs and learner in turn in one process: reproducible (else a collector process)"""
-    envs: int = 1
-    """envs stepped in turn by the collector"""
-    max_lead: int = 8
-    """parallel mode: env steps the collector may run ahead of the updates"""
-    device: str = "cpu"
-    """the learner's device: cpu, cuda, cuda:1, ..."""
-    # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32
-    # weights and Adam; policy.algorithms.td3.best_precision says whether it pays on a machine
-    precision: Precision = "fp32"
-    """the update's arithmetic: fp32, or bf16 matmuls with float32 weights and Adam"""
-    env: str = ""
-    """a Gymnasium env id instead of --scenario, e.g. BipedalWalkerHardcore-v3"""
-    world_every: int = 1
-    """family:/mix: scenarios: a new world every N episodes"""
-    goal_return: float = 0.0
-    """with --env: the episodic return that counts as reaching the goal"""
-    # not flags: the tqdm bar (off under Ray Tune, which reports for itself), and
-    # free-form entries recorded in the run's config.json
-    progress: tyro.conf.Suppress[bool] = True
-    extra: tyro.conf.Suppress[dict] = field(default_factory=dict)
-
-    # the least value of each count; a smaller one is refused on construction
-    AT_LEAST: ClassVar[dict[str, int]] = {
-        "episodes": 1, "start_steps": 0, "buffer_size": 1, "checkpoint_every": 1,
-        "threads": 1, "envs": 1, "max_lead": 1, "world_every": 1,
-        "snapshot_every": 0}
-
-    def __post_init__(self) -> None:
-        self.check()
-
-    def check(self) -> None:
-        """The cheap checks: counts in range, choices among the known ones. Raises
-        ``ConfigError`` naming the flag; runs on construction, so a bad value never
-        gets as far as starting a run."""
-        check_at_least(self, self.AT_LEAST)
-        if self.algo not in ALGOS:
-            raise ConfigError("algo", f"unknown algorithm {self.algo!r}; choose from "
-                                      f"{sorted(ALGOS)}")
-        if self.reward not in GOAL_REWARDS:
-            raise ConfigError("reward", f"unknown reward {self.reward!r}; choose from "
-                                        f"{sorted(GOAL_REWARDS)}")
-        if self.precision not in PRECISIONS:
-            raise ConfigError("precision", f"must be one of {sorted(PRECISIONS)}, "
-                                           f"got {self.precision!r}")
-
-    def validate(self) -> None:
-        """``check``, then what costs more: the device, the scenario or env id."""
-        from sitl.families import check_scenario  # ScenarioError naming the scenario
-
-        self.check()  # the fields may have been changed since construction
-        try:
-            torch.empty(0, device=self.device)
-        except (RuntimeError, AssertionError) as exc:
-            raise ValueError(f"--device {self.device!r} is not usable here ({exc})") from exc
-        if self.env:
-            from policy.training.gym_task import check_env_id
-
-            check_env_id(self.env)
-        else:
-            check_scenario(self.scenario)
-
-    @property
-    def task(self) -> str:
-        """What the run learns: the Gymnasium env id or the scenario name."""
-        return self.env or self.scenario
 
 
 def episode_seed(seed: int, episode: int) -> int:
