@@ -9,14 +9,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Annotated, ClassVar
+from typing import Annotated, ClassVar, get_args
 
 import tyro
 
 from policy.algorithms.rewards import GOAL_REWARDS as REWARDS  # numpy only
 from policy.training.settings import Algo, ConfigError, Reward, check_at_least
 
-ALGOS = ("td3", "ddpg")  # policy.algorithms.agents.ALGOS (which imports torch)
+ALGOS = get_args(Algo)  # the keys of policy.algorithms.agents.ALGOS (which imports torch)
 
 
 @dataclass
