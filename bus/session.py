@@ -38,14 +38,15 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import zenoh
 
-__all__ = ["HUB", "LOOPBACK_ANY", "SessionConfig", "open_router", "open_session",
-           "run_router"]
+__all__ = ["HUB", "LOOPBACK_ANY", "SessionConfig", "SessionError", "open_router",
+           "open_session", "run_router"]
 
 log = logging.getLogger("skyloop.bus")
 
@@ -57,6 +58,16 @@ ENV_CONNECT = "SKYLOOP_ZENOH_CONNECT"
 ENV_LISTEN = "SKYLOOP_ZENOH_LISTEN"
 ENV_CONFIG = "ZENOH_CONFIG"  # the variable Zenoh's own tools read
 ENV_HUB = "SKYLOOP_ZENOH_HUB"
+
+
+class SessionError(ValueError):
+    """Zenoh could not open a session (an endpoint taken or unreachable): one line naming
+    the endpoint, without the Rust source locations; ``skyloop`` prints it and exits 2."""
+
+    def __init__(self, err: zenoh.ZError) -> None:
+        said = re.sub(r" at /\S+?\.rs:\d+\.?", "", str(err)).strip()
+        super().__init__(f"cannot open a Zenoh session: {said} (endpoints: --listen, "
+                         f"--connect, --hub or SKYLOOP_ZENOH_*)")
 
 
 def _endpoints(value: str | Sequence[str] | None) -> tuple[str, ...]:
@@ -187,7 +198,10 @@ os.register_at_fork(before=_count_before_fork, after_in_child=_warn_fork_child)
 
 
 def _open(conf: zenoh.Config) -> zenoh.Session:
-    session = zenoh.open(conf)
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as err:
+        raise SessionError(err) from None
     _sessions[:] = [s for s in _sessions if not s.is_closed()] + [session]
     return session
 
@@ -206,7 +220,7 @@ def open_session(cfg: SessionConfig | None = None) -> zenoh.Session:
         session = _open(cfg.zenoh_config(listen=[cfg.hub], connect=[]))
         log.debug("zenoh peer %s: hub on %s", session.info.zid(), cfg.hub)
         return session
-    except zenoh.ZError as err:  # usually "Address already in use": someone is the hub
+    except SessionError as err:  # usually "Address already in use": someone is the hub
         log.debug("hub %s taken (%s); joining it", cfg.hub, err)
     session = _open(cfg.zenoh_config(listen=[LOOPBACK_ANY], connect=[cfg.hub]))
     log.debug("zenoh peer %s: joined hub %s", session.info.zid(), cfg.hub)

@@ -69,7 +69,10 @@ def _one_line(event: Any) -> None:
         if isinstance(event, e.InstantiationFailure):  # a value of the wrong type
             message = _first_line(event.message)
         elif isinstance(event, e.InvalidChoice):
-            choices = ", ".join(repr(c) for c in event.choices)
+            # tyro's choices come unordered, and an optional one (``Literal[...] | None``)
+            # lists None, which no one types
+            choices = ", ".join(repr(c) for c in sorted(
+                str(c) for c in event.choices if c not in (None, "None")))
             message = f"invalid choice: {event.value!r} (choose from {choices})"
         elif isinstance(event, e.BadValue):
             message = ("expected a value" if event.offending_value is None

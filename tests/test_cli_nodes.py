@@ -265,6 +265,25 @@ def test_router_refuses_a_zenoh_config_it_cannot_read(tmp_path):
                           f"ZENOH_CONFIG): no such file\n", proc.stderr
 
 
+def test_a_taken_endpoint_is_one_line_naming_it():
+    """A router or a node told to listen on a taken port: exit 2, one line naming the
+    endpoint and the flags that choose it, no traceback."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        endpoint = f"tcp/127.0.0.1:{taken.getsockname()[1]}"
+        for argv in (["router", "--listen", endpoint], ["perception", "--listen", endpoint]):
+            proc = subprocess.run([sys.executable, "-m", "skyloop", *argv],
+                                  capture_output=True, text=True, timeout=120)
+            assert proc.returncode == 2, (argv, proc.stderr)
+            assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr, proc.stderr
+            assert f"cannot open a Zenoh session: Can not create a new TCP listener bound to " \
+                   f"{endpoint}" in proc.stderr and "--listen" in proc.stderr, proc.stderr
+            assert ".rs:" not in proc.stderr, proc.stderr  # no Rust source locations
+
+
 def test_a_bad_value_stops_up_before_anything_starts(tmp_path):
     logs = tmp_path / "logs"
     for argv in (["--episodes", "-1"], ["--param", "SKY_ICO_RADIUS=-3"],
@@ -491,6 +510,8 @@ def test_a_learner_command_line_gives_the_config_it_says(capsys):
                        (["--updates-per-step", "nan"], "argument --updates-per-step: "),
                        (["--algo", "ppo"], "argument --algo: invalid choice: 'ppo'"),
                        (["--reward", "x"], "argument --reward: invalid choice: 'x'"),
+                       (["--mode", "x"],  # an optional choice: None is not offered
+                        "argument --mode: invalid choice: 'x' (choose from 'client', 'peer')\n"),
                        (["--vehicles", "*", "uav1"], "argument --vehicles: '*'"),
                        (["--vehicles", "a/b"], "argument --vehicles: vehicle must match"),
                        (["--threads", "x"], "argument --threads: ")):
