@@ -348,6 +348,8 @@ def run_router(args: RouterCommand) -> int:
     config = (args.zenoh_config if args.zenoh_config is not None
               else os.environ.get(ENV_CONFIG) or None)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    import zenoh  # Zenoh's own log to stderr when RUST_LOG is set (bus/certs.py: the
+    zenoh.try_init_log_from_env()  # access control's decisions at TRACE)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
