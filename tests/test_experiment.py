@@ -22,7 +22,7 @@ seeds = [0, 1]
 episodes = 3
 
 [train]
-start_steps = 50
+start_steps = 400  # few TD3 updates (from mid-episode 2): the grid is under test
 buffer_size = 5000
 checkpoint_every = 1
 sync = true
@@ -42,7 +42,7 @@ def test_a_grid_is_the_product_of_tasks_methods_and_seeds(tmp_path):
     cfg = grid.trials[1].config
     assert (cfg.algo, cfg.reward, cfg.scenario, cfg.seed, cfg.episodes) == (
         "td3", "abr", "valley", 0, 3)
-    assert (cfg.start_steps, cfg.buffer_size, cfg.checkpoint_every) == (50, 5000, 1)
+    assert (cfg.start_steps, cfg.buffer_size, cfg.checkpoint_every) == (400, 5000, 1)
     assert grid.episodes == 12
     crossed = load_grid(write(tmp_path, GOOD.replace(
         'methods = ["td3+tr", "td3+abr"]', 'algos = ["td3", "ddpg"]\nrewards = ["ngr"]')))
@@ -67,11 +67,11 @@ def test_a_grid_is_the_product_of_tasks_methods_and_seeds(tmp_path):
     ('scenario = "valley"', 'scenario = "moon"', "scenario:"),
     ('scenario = "valley"', 'env = "NoSuchEnv-v9"', "env: unknown Gymnasium env id"),
     ('scenario = "valley"', "", "scenarios: missing"),
-    ("start_steps = 50", "start_step = 50", "train.start_step: unknown option"),
-    ("start_steps = 50", 'start_steps = "fifty"', "train.start_steps: expected int"),
-    ("start_steps = 50", "seed = 3", "train.seed: set it at the top level"),
+    ("start_steps = 400", "start_step = 400", "train.start_step: unknown option"),
+    ("start_steps = 400", 'start_steps = "fifty"', "train.start_steps: expected int"),
+    ("start_steps = 400", "seed = 3", "train.seed: set it at the top level"),
     ("checkpoint_every = 1", "checkpoint_every = 0", "train.checkpoint_every: must be at least 1"),
-    ("start_steps = 50", "start_steps = -1", "train.start_steps: must be 0 or more, got -1"),
+    ("start_steps = 400", "start_steps = -1", "train.start_steps: must be 0 or more, got -1"),
     ("episodes = 3", "episodes = 3\nepisodes = 5", "not valid TOML"),
 ])
 def test_a_bad_grid_names_the_file_and_the_field(tmp_path, old, new, field):

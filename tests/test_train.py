@@ -130,7 +130,7 @@ def test_killed_run_resumes_from_last_checkpoint(tmp_path):
     state = torch.load(out / CHECKPOINT, weights_only=False)
     done = state["episode"]
     assert 2 <= done < 40
-    rc = subprocess.run([*cmd[:5], "6" if done < 6 else str(done + 2), *cmd[6:], "--resume"],
+    rc = subprocess.run([*cmd[:5], str(done + 2), *cmd[6:], "--resume"],  # an episode per env
                         capture_output=True, text=True, timeout=300)
     assert rc.returncode == 0, rc.stderr[-2000:]
     rows = (out / "episodes.csv").read_text().splitlines()
