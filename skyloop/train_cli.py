@@ -10,6 +10,7 @@ once; the trainer and the offline learner are imported only to run."""
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -69,6 +70,8 @@ def run_train(command: TrainCommand) -> int:
                                   reward=command.config.reward, updates=command.updates,
                                   seed=command.config.seed, bc=command.bc,
                                   init_actor=command.init_actor)
+        for reason, n in summary["skipped"].items():  # also in the JSON: said, not silent
+            print(f"skyloop train: skipped {n} episode(s) or file(s): {reason}", file=sys.stderr)
     else:
         from policy.training.train import Trainer
 

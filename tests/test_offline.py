@@ -161,3 +161,27 @@ def test_a_file_that_is_not_a_log_is_named(logged, tmp_path):
     summary = train_from_logs([path, noise], tmp_path / "mixed", updates=1)
     assert summary["episodes_used"] == EPISODES
     assert summary["skipped"] == {f"{noise}: not an MCAP file (bad magic)": 1}
+
+
+def test_the_command_names_a_bad_file_alone_or_among_good_ones(logged, tmp_path):
+    """``skyloop train --from-logs``: a file that is not a log, alone, is one line naming
+    it (exit 2); beside a good log it is skipped and said on stderr, not only counted in
+    the JSON."""
+    path, _ = logged
+    noise = tmp_path / "noise.mcap"
+    noise.write_bytes(np.random.default_rng(1).bytes(5000))
+
+    def train(*logs: Path) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "skyloop", "train", "--from-logs",
+                               *map(str, logs), "--updates", "1", "--out",
+                               str(tmp_path / f"out{len(logs)}")],
+                              capture_output=True, text=True, timeout=300)
+
+    alone = train(noise)
+    assert alone.returncode == 2, alone.stderr
+    assert alone.stderr == (f"skyloop train: error: no usable episodes in {noise}: {noise}: "
+                            f"not an MCAP file (bad magic)\n"), alone.stderr
+    mixed = train(path, noise)
+    assert mixed.returncode == 0, mixed.stderr[-2000:]
+    assert (f"skyloop train: skipped 1 episode(s) or file(s): {noise}: not an MCAP file "
+            f"(bad magic)\n") in mixed.stderr, mixed.stderr

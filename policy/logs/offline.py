@@ -216,7 +216,9 @@ def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: 
                "skipped": report.skipped, "files": report.files, "reward": reward,
                "algo": "td3+bc" if bc else "td3", "updates": 0}
     if report.transitions == 0:
-        raise ValueError(f"no usable episodes in {[str(p) for p in paths]}: {report.skipped}")
+        why = "; ".join(f"{reason} (x{n})" if n > 1 else reason
+                        for reason, n in report.skipped.items()) or "no episodes in them"
+        raise ValueError(f"no usable episodes in {', '.join(map(str, paths))}: {why}")
     agent = (TD3BC if bc else TD3)(TD3Config(seed=seed))
     agent.task = TASK.to_dict()  # recorded in its actor file
     if init_actor is not None:
