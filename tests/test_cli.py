@@ -141,6 +141,7 @@ def test_a_taken_mavlink_port_names_the_port_and_the_flag():
         taken.bind(("127.0.0.1", port))
         for args, flag in ((("bridge", "--no-gcs", "--api-local-port", str(port)),
                             "--api-local-port"),
+                           (("bridge", "--gcs-local-port", str(port)), "--gcs-local-port"),
                            (("policy", "--policy", "scripted", "--api-port", str(port)),
                             "--api-port")):
             out = skyloop(*args, timeout=60)

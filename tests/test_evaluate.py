@@ -63,6 +63,16 @@ def test_bad_policy_files_give_clear_errors(tmp_path):
         ActorController(tmp_path / "shape.pt")
 
 
+def test_eval_of_a_directory_without_an_actor_is_one_line(tmp_path):
+    """``skyloop eval --policy DIR`` (--help promises run directories): a directory
+    without an actor.pt is one line naming it, exit 2, before anything flies."""
+    out = subprocess.run([sys.executable, "-m", "skyloop", "eval", "--policy", str(tmp_path),
+                          "--episodes", "1"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2, out.stderr[-2000:]
+    assert out.stderr.count("\n") == 1 and "Traceback" not in out.stderr, out.stderr
+    assert str(tmp_path) in out.stderr and "a directory without an actor.pt" in out.stderr
+
+
 @pytest.mark.skipif(not SHIPPED_POLICY.exists(), reason="no shipped policy committed yet")
 def test_default_is_the_shipped_policy():
     out = subprocess.run([sys.executable, "-m", "skyloop", "eval", "--episodes", "2"],
