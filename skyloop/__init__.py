@@ -22,6 +22,11 @@ from __future__ import annotations
 import os
 from importlib.metadata import PackageNotFoundError, version
 
+from skyloop import signals as _signals
+
+if _signals.started_as_command():  # a signal during start-up ends it at once, quietly
+    _signals.exit_at_once()
+
 # Small matrices on a 2-core machine: BLAS threads cost far more than they save
 # (measured up to 50x slower for the icosahedron matmuls). Users can still override.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")

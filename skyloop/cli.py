@@ -121,6 +121,10 @@ def build_parser() -> argparse.ArgumentParser:
 GENERATED = {"train": _cmd_train, "eval": _cmd_eval, "learner": _cmd_learner,
              "health": _cmd_health}
 STACK = ("sim", "perception", "policy", "bridge", "up")  # skyloop.stack_cli.COMMANDS
+#: commands that install their own SIGINT/SIGTERM handling before they open anything;
+#: until then a signal ends them at once (skyloop.signals.exit_at_once). The others get
+#: Python's own handling back before they run.
+OWN_SIGNALS = (*STACK, "record", "router", "learner", "viz", "view")
 
 
 def _tool(argv: list[str]) -> tuple[str, list[str]] | None:
@@ -140,6 +144,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str]) -> int:
+    if not argv or argv[0] not in OWN_SIGNALS:
+        from skyloop.signals import default_signals
+
+        default_signals()
     if argv and argv[0] in GENERATED:  # their parsers are generated from dataclasses (tyro)
         args = argparse.Namespace(command=argv[0], rest=argv[1:], func=GENERATED[argv[0]])
     elif argv and argv[0] in STACK:  # generated too (skyloop.stack_settings)

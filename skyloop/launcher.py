@@ -60,7 +60,7 @@ from typing import Any
 
 from bus.node import Bus
 from bus.session import SessionConfig
-from skyloop.signals import Stopped, stop_on_sigterm
+from skyloop.signals import Stopped, block_until_started, stop_on_sigterm
 from skyloop.stack_settings import UpCommand
 
 # The lines the nodes print (sitl.node / policy.nodes.node; not imported: --help stays light);
@@ -118,6 +118,7 @@ def exited(proc: subprocess.Popen) -> bool:
 
 
 def _pdeathsig() -> None:  # runs in the child between fork and exec: no Zenoh there
+    block_until_started()  # a stop signal in the interpreter's start-up waits for skyloop
     try:
         import ctypes
 

@@ -2,6 +2,20 @@
 SIGTERM; raising :class:`Stopped` (a ``KeyboardInterrupt``) in the main thread runs the
 same clean-up paths as Ctrl-C, and ``skyloop.cli.main`` exits 128 + the signal (143).
 
+Start-up: from the first line of ``python -m skyloop`` (or the ``skyloop`` script) until
+a command installs its own handling (:func:`stop_on_sigterm`, or a node's stop event),
+SIGINT and SIGTERM end the process at once, 128 + the signal, with one line and no
+traceback (:func:`exit_at_once`). Nothing is open yet to close then, while a
+``KeyboardInterrupt`` raised inside an import prints a traceback, and one raised inside
+code an import runs through ``exec`` (a dataclass's methods) makes CPython 3.11 exit by
+SIGINT whatever the exit code (both seen, interrupting nodes at random moments).
+Commands that handle neither signal (``train``, ``eval``, ...) get Python's own
+behaviour back before they run (:func:`default_signals`). Before that first line, in the
+interpreter's own start-up, SIGTERM's default action would end the process (killed by
+the signal, no clean-up) and SIGINT could print a traceback: a parent that starts
+``python -m skyloop`` with both signals blocked (:func:`block_until_started`, as
+``skyloop up`` does) has them delivered at that first line instead.
+
 A reader that goes away (``skyloop train --help | head -3``) ends a command quietly, as
 SIGPIPE ends a C program: :func:`quiet_broken_pipe`, exit 128 + SIGPIPE (141), no
 traceback."""
@@ -13,6 +27,8 @@ import signal
 import sys
 from collections.abc import Callable
 from typing import Any
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 class Stopped(KeyboardInterrupt):
@@ -28,8 +44,53 @@ def _raise_stopped(signum: int, frame: Any) -> None:
 
 
 def stop_on_sigterm() -> None:
-    """From now on SIGTERM raises :class:`Stopped` in the main thread."""
+    """From now on SIGTERM raises :class:`Stopped` in the main thread, and SIGINT
+    ``KeyboardInterrupt`` (Python's own; still ignored if the process started with it
+    ignored, as a background job does)."""
     signal.signal(signal.SIGTERM, _raise_stopped)
+    if signal.getsignal(signal.SIGINT) is _exit_now:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+def started_as_command() -> bool:
+    """Whether this interpreter was started to run the ``skyloop`` command (``python -m
+    skyloop ...``, or the ``skyloop`` script), not to import skyloop as a library."""
+    argv = getattr(sys, "orig_argv", [])
+    if "-m" in argv[:-1]:
+        return argv[argv.index("-m") + 1] == "skyloop"
+    return bool(sys.argv) and os.path.basename(sys.argv[0]) == "skyloop"
+
+
+def _exit_now(signum: int, frame: Any) -> None:
+    os.write(2, b"terminated\n" if signum == signal.SIGTERM else b"interrupted\n")
+    os._exit(128 + signum)
+
+
+def exit_at_once() -> None:
+    """Until a command installs its own handling: SIGINT and SIGTERM end the process at
+    once, 128 + the signal (see the module docstring). A signal the process started
+    with ignored stays ignored; blocked ones (:func:`block_until_started`) are unblocked,
+    and one that came meanwhile ends the process now."""
+    for sig in STOP_SIGNALS:
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            signal.signal(sig, _exit_now)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
+
+
+def block_until_started() -> None:
+    """``preexec_fn`` for a ``python -m skyloop`` child: SIGINT and SIGTERM blocked until
+    skyloop's first line (:func:`exit_at_once`) unblocks them, so that a signal sent in
+    the interpreter's own start-up ends it as any other start-up signal does."""
+    signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+
+
+def default_signals() -> None:
+    """Python's own handling back where :func:`exit_at_once` left its own: SIGINT
+    raises ``KeyboardInterrupt``, SIGTERM ends the process."""
+    for sig, handler in ((signal.SIGINT, signal.default_int_handler),
+                         (signal.SIGTERM, signal.SIG_DFL)):
+        if signal.getsignal(sig) is _exit_now:
+            signal.signal(sig, handler)
 
 
 def quiet_broken_pipe(run: Callable[[], int]) -> int:

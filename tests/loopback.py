@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import os
 import signal
+import socket
 import subprocess
+import sys
 import time
 
 from skyloop.launcher import free_port
+from skyloop.signals import block_until_started
 
-__all__ = ["free_port", "interrupt", "sigint_default", "wait_for"]
+__all__ = ["alive", "exit_status", "free_port", "interrupt", "session_members",
+           "sigint_default", "started_blocked", "up_args", "wait_for"]
 
 
 def sigint_default() -> None:
@@ -16,6 +21,58 @@ def sigint_default() -> None:
     (a test run started in the background inherits SIGINT ignored, and a Python started
     so never raises KeyboardInterrupt)."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def started_blocked() -> None:
+    """``preexec_fn`` for a ``python -m skyloop`` child the test will signal at any moment,
+    as ``skyloop up`` starts its nodes: SIGINT as at an interactive shell, and both stop
+    signals held until skyloop's first line (``skyloop.signals.block_until_started``)."""
+    sigint_default()
+    block_until_started()
+
+
+def up_args(*extra: str) -> list[str]:
+    """``skyloop up`` on free loopback ports (Zenoh hub, MAVLink links) with ``extra``."""
+    udp = [free_port(socket.SOCK_DGRAM) for _ in range(4)]
+    return [sys.executable, "-m", "skyloop", "up", "--hub", f"tcp/127.0.0.1:{free_port()}",
+            "--api-port", str(udp[0]), "--api-local-port", str(udp[1]),
+            "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3]), *extra]
+
+
+def _stat(pid: int) -> list[str] | None:
+    """The fields of ``/proc/<pid>/stat`` after the name (state first), None if gone."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            return f.read().rsplit(b")", 1)[1].decode().split()
+    except (FileNotFoundError, ProcessLookupError, IndexError):
+        return None
+
+
+def alive(pid: int) -> bool:
+    """Whether process ``pid`` runs: not gone, not a zombie (exited, not reaped yet)."""
+    fields = _stat(pid)
+    return fields is not None and fields[0] != "Z"
+
+
+def exit_status(pid: int) -> int | None:
+    """The exit code of an exited, not yet reaped process (a zombie of another parent),
+    as ``Popen.returncode`` gives it (``-N``: killed by signal N); None if not a zombie."""
+    fields = _stat(pid)
+    if fields is None or fields[0] != "Z":
+        return None
+    status = int(fields[49])  # field 52, exit_code: as waitpid(2) reports it
+    return -(status & 0x7F) if status & 0x7F else status >> 8
+
+
+def session_members(sid: int) -> list[int]:
+    """Live processes (zombies aside) of session ``sid`` (a child started with
+    ``start_new_session``: its pid), from ``/proc``."""
+    out = []
+    for name in os.listdir("/proc"):
+        if name.isdigit() and (fields := _stat(int(name))) is not None \
+                and fields[0] != "Z" and int(fields[3]) == sid:
+            out.append(int(name))
+    return out
 
 
 def wait_for(cond, timeout: float = 10.0, what: str = "condition", poll: float = 0.005) -> None:
