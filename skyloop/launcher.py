@@ -22,7 +22,8 @@ sim runs free flight in real time with goals from the bus only (``sim --goals-fr
 ground station's mission or reposition gives them (``mavlink_bridge.goals``), and between
 goals the policy hovers (``policy --hold``); until stopped by default. ``--param
 NAME=VALUE`` goes to the sim (``bus/params.py``). When the sim finishes, the others get
-SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period. If any child
+SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period (a node that
+needed it is named: "force-killed NAME"; none should). If any child
 dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits non-zero,
 naming the node that died and its last log line. With ``--restart on-failure`` a
 perception, bridge, policy or ``--router`` router that exits with a failure is started
@@ -246,13 +247,16 @@ class Graph:
                 raise TimeoutError(f"{what} not ready within {timeout:.0f} s")
         return None
 
-    def stop(self, grace: float = GRACE_S, keep: str | None = None) -> None:
+    def stop(self, grace: float = GRACE_S, keep: str | None = None) -> list[str]:
         """SIGTERM every live child (but ``keep``), SIGKILL what is left after ``grace``
-        seconds."""
-        self._stop([c for c in self.children if c.name != keep], grace)
+        seconds; the names of those (see :meth:`_stop`)."""
+        return self._stop([c for c in self.children if c.name != keep], grace)
 
     @staticmethod
-    def _stop(children: list[Child], grace: float) -> None:
+    def _stop(children: list[Child], grace: float) -> list[str]:
+        """SIGTERM ``children``, SIGKILL those still running after ``grace`` seconds: a
+        node that does not stop on SIGTERM is a bug (every node stops within 2 s), so
+        they are named, on one line; returns their names."""
         for c in reversed(children):
             if c.proc.poll() is None:
                 try:
@@ -260,6 +264,7 @@ class Graph:
                 except ProcessLookupError:
                     pass
         deadline = time.monotonic() + grace
+        killed = []
         for c in children:
             try:
                 c.proc.wait(max(0.0, deadline - time.monotonic()))
@@ -268,7 +273,12 @@ class Graph:
                     os.killpg(c.proc.pid, signal.SIGKILL)
                 except ProcessLookupError:
                     pass
+                killed.append(c.name)
                 c.proc.wait(1.0)
+        if killed:
+            print(f"skyloop up: force-killed {', '.join(killed)} (still running "
+                  f"{grace:g} s after SIGTERM)", file=sys.stderr, flush=True)
+        return killed
 
 
 def _security_flags(args: UpCommand) -> list[str]:

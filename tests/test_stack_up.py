@@ -15,7 +15,6 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -24,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from loopback import free_port, sigint_default
+from loopback import alive, session_members, sigint_default, up_args
 
 from bus import messages as m
 from bus.log_reader import EpisodeLogReader, read_episodes
@@ -33,13 +32,6 @@ from skyloop import launcher
 SEED, EPISODES = 1000, 2
 ROOT = Path(__file__).resolve().parent.parent
 
-
-
-def up_args(*extra: str) -> list[str]:
-    udp = [free_port(socket.SOCK_DGRAM) for _ in range(4)]
-    return [sys.executable, "-m", "skyloop", "up", "--hub", f"tcp/127.0.0.1:{free_port()}",
-            "--api-port", str(udp[0]), "--api-local-port", str(udp[1]),
-            "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3]), *extra]
 
 
 def run_up(tmp: Path, name: str, *extra: str) -> tuple[dict, Path, str]:
@@ -238,10 +230,65 @@ def test_a_signal_stops_the_graph_with_a_summary(sig, code):
         assert time.monotonic() - t0 < 5.0
         assert proc.returncode == code
         assert "summary: " in rest and "Traceback" not in rest, rest
+        assert "force-killed" not in rest, rest  # every node stopped on its SIGTERM
         assert_all_gone(pids)
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_a_killed_launcher_leaves_no_child():
+    """SIGKILL of ``skyloop up`` mid-run (nothing of its own runs): every child goes
+    within 2 s, by its parent-death signal (``launcher._pdeathsig``), with whatever it
+    started."""
+    proc, pids = flying_graph()
+    try:
+        assert set(pids) == {"perception", "bridge", "policy", "sim"}, pids
+        proc.kill()
+        t0 = time.monotonic()
+        proc.wait(5)
+        gone: dict[str, float] = {}
+        while len(gone) < len(pids) and time.monotonic() - t0 < 10:
+            for name, pid in pids.items():
+                if name not in gone and not alive(pid):  # gone, or a zombie of init's
+                    gone[name] = time.monotonic() - t0
+            time.sleep(0.005)
+        assert set(gone) == set(pids) and max(gone.values()) < 2.0, gone
+        assert all(session_members(pid) == [] for pid in pids.values())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for pid in pids.values():  # a survivor must not outlive the test either
+            if alive(pid):
+                os.killpg(pid, signal.SIGKILL)
+
+
+def test_the_launcher_names_the_nodes_it_had_to_force_kill(capsys):
+    """What the graph tests' "force-killed" checks rest on: a child that ignores SIGTERM
+    is SIGKILLed after the grace period and named; one that stops is not."""
+    code = ("import signal, sys, time\n"
+            "signal.signal(signal.SIGTERM, signal.SIG_IGN if sys.argv[1] == 'deaf' "
+            "else signal.SIG_DFL)\nprint('ready', flush=True)\ntime.sleep(60)")
+    children = [launcher.Child(name, subprocess.Popen(
+        [sys.executable, "-c", code, name], stdout=subprocess.PIPE, text=True,
+        start_new_session=True)) for name in ("deaf", "polite")]
+    try:
+        for c in children:
+            assert c.proc.stdout.readline() == "ready\n"
+        t0 = time.monotonic()
+        assert launcher.Graph._stop(children, 0.5) == ["deaf"]
+        assert time.monotonic() - t0 < 1.5
+        assert children[0].proc.returncode == -signal.SIGKILL
+        assert children[1].proc.returncode == -signal.SIGTERM
+        err = capsys.readouterr().err
+        assert "skyloop up: force-killed deaf (still running 0.5 s after SIGTERM)" in err, err
+        assert launcher.Graph._stop(children[1:], 0.5) == []  # nothing left: no line
+        assert "force-killed" not in capsys.readouterr().err
+    finally:
+        for c in children:
+            if c.proc.poll() is None:
+                c.proc.kill()
+            c.proc.wait()
 
 
 def test_cpu_time_of_a_child_is_read_until_it_is_reaped():
