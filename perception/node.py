@@ -55,11 +55,14 @@ class PerceptionNode:
         self.param_rejects = 0
         # Bounded: step data (scans, odometry, clock) offered faster than it is reduced is
         # dropped and counted (``dropped``), not queued without end (2 GB in 8 s at ~1,400
-        # scans/s, seen). Episode events and parameters, rare, are never dropped: a lost
-        # START would lose its episode's goal, a lost parameter an acknowledged change.
+        # scans/s, seen). Episode events and parameters, rare, get the other half of the
+        # queue: a full queue of step data still takes a START (a lost one would lose its
+        # episode's goal) or a parameter; only a flood of them is dropped and counted too
+        # (``dropped_events``, also in ``dropped``), each drop logged.
         self.dropped = 0
+        self.dropped_events = 0
         self.queue_size = int(queue_size)
-        self._q: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self._q: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=2 * self.queue_size)
         self._stop = threading.Event()
         self._count_lock = threading.Lock()
         # Warm up (numba compiles on the first call) before anyone can wait on us.
@@ -75,13 +78,21 @@ class PerceptionNode:
         """Zenoh's callback: queue the message, or count it dropped if the queue is full."""
         if self._stop.is_set():
             return  # closing: nothing will handle it
-        if topic in (keys.EPISODE, keys.PARAMS) or self._q.qsize() < self.queue_size:
-            self._q.put_nowait((topic, msg))
-            return
+        event = topic in (keys.EPISODE, keys.PARAMS)
+        if event or self._q.qsize() < self.queue_size:
+            try:
+                self._q.put_nowait((topic, msg))
+                return
+            except queue.Full:  # the events' half is full too
+                pass
         with self._count_lock:  # Zenoh calls back from several threads
             self.dropped += 1
+            self.dropped_events += event
             dropped = self.dropped
-        if dropped in (1, 10, 100) or dropped % 1000 == 0:
+        if event:
+            log.warning("overloaded: dropped a message on '%s' (%d episode events or "
+                        "parameters so far)", topic, self.dropped_events)
+        elif dropped in (1, 10, 100) or dropped % 1000 == 0:
             log.warning("overloaded: %d messages dropped so far", dropped)
 
     def _run(self) -> None:

@@ -90,8 +90,8 @@ def cmd_perception(args: PerceptionCommand) -> int:
         node.close()  # the worker first: it publishes on the bus
         bus.close()
         logging.getLogger("skyloop.perception").info(
-            "published %d observations, dropped %d messages (overload)", node.published,
-            node.dropped)
+            "published %d observations, dropped %d messages (overload; %d episode events "
+            "or parameters among them)", node.published, node.dropped, node.dropped_events)
     return 0
 
 
