@@ -39,6 +39,10 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
 * **Goals** (:mod:`mavlink_bridge.goals`): missions, DO_REPOSITION and
   SET_POSITION_TARGET_GLOBAL_INT become PoseStamped goals on ``goal``; progress
   (MISSION_CURRENT, MISSION_ITEM_REACHED) follows the sim's ``episode`` events.
+* **Overload**: the sim's ``status`` and ``episode`` messages wait for the loop in a
+  bounded queue (``queue_size``); when it is full the oldest is dropped (the newest state
+  matters) and counted (``dropped``, in the node's last log line), so a flood cannot
+  grow memory.
 * **Presence**: the endpoint is serviced (heartbeats sent, MAVLink read) only while the
   sim's status is fresh (one within ``vehicle_timeout_s``; the sim sends one a second):
   like a PX4 that is not running, a vehicle whose sim has not started or has died sends
@@ -54,6 +58,7 @@ import math
 import os
 import queue
 import select
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -158,7 +163,8 @@ class BridgeNode:
     def __init__(self, bus: Bus, vehicle: str = "uav1",
                  link_config: VehicleLinkConfig | None = None,
                  command_timeout_s: float = 1.0, vehicle_timeout_s: float = 3.0,
-                 param_overrides: dict[str, float] | None = None) -> None:
+                 param_overrides: dict[str, float] | None = None,
+                 queue_size: int = 256) -> None:
         self.bus = bus
         self.vehicle_timeout_s = vehicle_timeout_s
         self._status_wall = -math.inf  # monotonic time of the last status
@@ -171,7 +177,9 @@ class BridgeNode:
         self.link.params.on_change = self._publish_param
         self.params_published = 0
         self.pub = bus.publisher(keys.CMD_VEL, vehicle)
-        self._q: queue.Queue[tuple[str, Any]] = queue.Queue()
+        self._q: queue.Queue[tuple[str, Any]] = queue.Queue(maxsize=queue_size)
+        self.dropped = 0  # bus messages dropped from a full queue (see the module doc)
+        self._count_lock = threading.Lock()
         self._wake_r, self._wake_w = os.pipe()  # bus callbacks wake the select loop
         os.set_blocking(self._wake_r, False)
         for topic in (keys.STATUS, keys.EPISODE):
@@ -191,7 +199,21 @@ class BridgeNode:
         self.statustexts = 0
 
     def _push(self, topic: str, msg: Any) -> None:
-        self._q.put((topic, msg))
+        """Zenoh's callback: queue the message; a full queue drops its oldest."""
+        while True:
+            try:
+                self._q.put_nowait((topic, msg))
+                break
+            except queue.Full:
+                try:
+                    self._q.get_nowait()
+                except queue.Empty:
+                    continue
+                with self._count_lock:  # Zenoh calls back from several threads
+                    self.dropped += 1
+                    dropped = self.dropped
+                if dropped in (1, 10, 100) or dropped % 1000 == 0:
+                    log.warning("overloaded: %d bus messages dropped so far", dropped)
         self._wake()
 
     def _wake(self) -> None:
@@ -286,6 +308,13 @@ class BridgeNode:
     def run(self, stop: Callable[[], bool]) -> None:
         while not stop():
             self.spin_once()
+
+    def counters(self) -> dict[str, int]:
+        """What the node did: setpoints forwarded and re-sends skipped, STATUSTEXTs,
+        parameters published, commands the sim did not answer, bus messages dropped."""
+        return {"setpoints": self.published, "resends": self.resends,
+                "statustexts": self.statustexts, "params_published": self.params_published,
+                "command_timeouts": self.commander.timeouts, "dropped": self.dropped}
 
     def close(self) -> None:
         self.link.close()

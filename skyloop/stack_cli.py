@@ -201,6 +201,7 @@ def cmd_bridge(args: BridgeCommand) -> int:
     finally:
         bus.close()
         node.close()
+        logging.getLogger("skyloop.bridge").info("bridge: %s", node.counters())
     return 0
 
 

@@ -170,3 +170,29 @@ def test_proxy_keeps_the_newest_state_and_follows_a_restarted_sim() -> None:
     assert proxy.state == "LAND"  # the older status lost to the newer answer
     assert proxy.update(m.vehicle_status(0.0, 0.0, 0, "DISARMED", False, True, None, False))
     assert (proxy.state, proxy.armed, proxy.landed) == ("DISARMED", False, True)  # restarted
+
+
+def test_a_status_flood_is_bounded_dropped_oldest_first_and_counted() -> None:
+    """The sim's status and episode messages wait for the bridge's loop in a bounded
+    queue: with the loop not running, 40 statuses into a queue of 16 leave 16 queued and
+    24 dropped (counted); the loop then takes the newest state."""
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    node_bus, sender = Bus.open(cfg), Bus.open(cfg)
+    api, local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    bridge = BridgeNode(node_bus, "uav1", VehicleLinkConfig(api=LinkConfig(local, api), gcs=None),
+                        queue_size=16)
+    try:
+        pub = sender.publisher(keys.STATUS, "uav1")
+        assert pub.wait_matched()
+        for revision in range(40):
+            pub.put(m.vehicle_status(0.0, 0.1 * revision, revision, "HOLD", True, False, None,
+                                     False))
+        wait_for(lambda: bridge.dropped == 24, what="the overflow counted")
+        assert bridge._q.qsize() == 16
+        bridge.spin_once(0.0)
+        assert bridge._q.qsize() == 0 and bridge.commander.revision == 39
+        assert bridge.counters()["dropped"] == 24
+    finally:
+        sender.close()
+        node_bus.close()
+        bridge.close()
