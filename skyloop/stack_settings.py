@@ -255,7 +255,11 @@ class PolicyFlag(Settings):
 # ----------------------------------------------------------------------------- commands
 @dataclass(kw_only=True)
 class SimCommand(SimRules, ClockFlags, BusFlags):
-    """``skyloop sim``: the simulator node (``sitl.node.SimNode``)."""
+    """``skyloop sim``: the simulator node (``sitl.node.SimNode``). Its defaults repeat
+    ``sitl.node_step.SimNodeConfig``'s (episodes, seed, lockstep timeout...) on purpose:
+    importing the simulator costs every command line ~1 s (JSBSim, Embree), and this
+    module is read for each one; tests/test_cli_nodes.py
+    (``test_defaults_agree_with_the_configs_they_feed``) fails when they part."""
 
     episodes: Annotated[int, tyro.conf.arg(metavar="N")] = 1
     """episodes to run (--free-flight: goals to reach, 0: until stopped)"""
