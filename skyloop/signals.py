@@ -93,6 +93,23 @@ def default_signals() -> None:
             signal.signal(sig, handler)
 
 
+def quick_exit(code: int) -> None:
+    """End the process now with ``code``, after flushing the log and the standard
+    streams, without the interpreter's finalization (atexit handlers, joining
+    non-daemon threads, tearing down modules): for a command that has closed everything
+    it opened (``skyloop.cli.QUICK_EXIT``). Nor can a subscriber left declared by
+    mistake (zenoh-python runs them on non-daemon threads) keep the process alive."""
+    import logging
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a reader gone, or closed: nothing to keep
+            pass
+    os._exit(code)
+
+
 def quiet_broken_pipe(run: Callable[[], int]) -> int:
     """``run()``'s exit code; if its standard output's reader has gone (EPIPE), 128 +
     SIGPIPE and no traceback. Standard output is flushed here, so a broken pipe shows

@@ -196,6 +196,7 @@ def test_every_node_stops_within_2_s_of_a_signal_mid_episode(tmp_path):
     out = "".join(lines)
     what = {n: f"{s.name} {took.get(n, float('inf')):.2f} s, code {codes[n]}"
             for n, (s, _) in sent.items()}
+    print(what)
     assert all(took.get(n, LIMIT_S) < LIMIT_S for n in pids), (what, out[-3000:])
     assert all(codes[n] in (0, 128 + sent[n][0]) for n in pids), (what, out[-3000:])
     assert not any(left.values()), left
