@@ -2,14 +2,17 @@
 (issue 13), as a supervisor (skyloop up, docker stop, systemd) expects. Real programs on
 loopback; the moments and signals are drawn from a seeded generator.
 
-* Alone (each node): once up and waiting (the policy for the vehicle's heartbeat, the
-  sim for "go", the others for data), a random moment later; then again at a random
-  moment of its start-up (imports, parsing, opening the bus: between its start and the
-  time the first run took to come up). One signal SIGTERM, the other SIGINT.
-* Mid-episode (every node of one ``skyloop up --router --log-dir``, flying): each gets
-  a random one of the two signals at one random moment of an episode. The launcher is
-  stopped (SIGSTOP) meanwhile, so that each node's own stop is measured, not the
-  launcher's SIGTERM after the first death; its readers then show what the nodes printed.
+* Alone (each node but the viewer and the learner, ~4 s to start each): once up and
+  waiting (the policy for the vehicle's heartbeat, the sim for "go", the others for
+  data), a random moment later; then again at a random moment of its start-up (imports,
+  parsing, opening the bus: between its start and the time the first run took to come
+  up). One signal SIGTERM, the other SIGINT.
+* Mid-episode (every node of one ``skyloop up --router --log-dir --viz save:...``,
+  flying; the viewer only here: it starts as slowly as the policy, and costs nothing
+  more in a graph that starts at once): each gets a random one of the two signals at
+  one random moment of an episode. The launcher is stopped (SIGSTOP) meanwhile, so that
+  each node's own stop is measured, not the launcher's SIGTERM after the first death;
+  its readers then show what the nodes printed (``--verbose``).
 
 Each time: the process exits within 2 s of the signal, as seen from here; exits 0 (a node
 whose stop event ended it) or 128 + the signal (``skyloop.signals``: the signal ended
@@ -142,8 +145,8 @@ def test_every_node_stops_within_2_s_of_a_signal_mid_episode(tmp_path):
     episodes = rng.randint(1, 3)  # the signals come a moment after this episode line
     moment = rng.uniform(0.0, 0.2)  # scripted episodes last 0.1-1 s in lockstep
     proc = subprocess.Popen(
-        up_args("--router", "--log-dir", str(tmp_path), "--episodes", "1000", "--policy",
-                "scripted", "--verbose"),
+        up_args("--router", "--log-dir", str(tmp_path), "--viz", f"save:{tmp_path}/run.rrd",
+                "--episodes", "1000", "--policy", "scripted", "--verbose"),
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         preexec_fn=sigint_default)
     pids: dict[str, int] = {}
@@ -165,7 +168,7 @@ def test_every_node_stops_within_2_s_of_a_signal_mid_episode(tmp_path):
     stopped = False
     try:
         assert flying.wait(180), "".join(lines)[-3000:]
-        assert set(pids) == set(NODES), pids
+        assert set(pids) == {*NODES, "viz"}, pids
         time.sleep(moment)
         os.kill(proc.pid, signal.SIGSTOP)  # the launcher: no SIGTERM of its own meanwhile
         stopped = True
