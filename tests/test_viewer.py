@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from loopback import up_args
 
 from bus.ros_view import face_colours, fan_triangles
 from skyloop.launcher import free_port
@@ -45,9 +46,9 @@ def flown(tmp_path_factory) -> tuple[Path, Path]:
     live recording)."""
     out = tmp_path_factory.mktemp("viz")
     live = out / "live.rrd"
-    proc = subprocess.run(SKYLOOP + ["up", "--episodes", "1", "--max-steps", "60", "--policy",
-                                     "scripted", "--log-dir", str(out / "logs"), "--viz",
-                                     f"save:{live}"],
+    proc = subprocess.run(up_args("--episodes", "1", "--max-steps", "60", "--policy",
+                                  "scripted", "--log-dir", str(out / "logs"), "--viz",
+                                  f"save:{live}"),
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert f"viz: drawing uav1 to {live}" in proc.stdout, proc.stdout
