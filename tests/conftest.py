@@ -5,7 +5,8 @@ Hermetic state: the bridge persists ground-station parameter changes under
 temporary directory, for itself and every process it starts, so no test reads a user's
 saved parameters or writes to the home directory.
 
-Parallel workers (``make test`` runs pytest-xdist, ``-n 2 --dist loadfile``): every test
+Parallel workers (``make test`` runs pytest-xdist, ``-n 2 --dist loadfile``, then the
+tests marked ``timing`` alone): every test
 that starts a stack gives it free loopback ports (``loopback.up_args``, ``free_port``);
 a session that opens the bus without a hub of its own would claim or join the default
 hub, tcp/127.0.0.1:7447, and so another worker's bus, so each worker session gets a hub

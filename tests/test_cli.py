@@ -7,6 +7,8 @@ import socket
 import subprocess
 import sys
 
+import pytest
+
 
 def skyloop(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "skyloop", *args], capture_output=True,
@@ -104,6 +106,7 @@ def test_bad_counts_are_refused_before_anything_starts():
         assert f"argument {flag}:" in out.stderr and "Traceback" not in out.stderr, args
 
 
+@pytest.mark.timing
 def test_policy_stops_on_sigterm_while_waiting_for_the_vehicle():
     """Start-up (waiting 30 s for a heartbeat that never comes) ends within 2 s of
     SIGTERM, cleanly."""

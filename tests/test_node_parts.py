@@ -7,6 +7,8 @@ from __future__ import annotations
 import queue
 import time
 
+import pytest
+
 from bus import messages as m
 from sitl.commander import State
 from sitl.episode import EpisodeConfig
@@ -137,6 +139,7 @@ def test_rejoin_after_a_broken_episode() -> None:
     assert not rejoin.rejoined(cmdr, cmd(42))
 
 
+@pytest.mark.timing
 def test_pacer_ticks_at_the_period_and_serves_meanwhile() -> None:
     served: list[int] = []
     pacer = Pacer(0.05, lambda: served.append(1))

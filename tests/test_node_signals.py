@@ -46,6 +46,7 @@ from loopback import (
 
 from skyloop import launcher
 
+pytestmark = pytest.mark.timing  # wall-clock deadlines: run alone (conftest, Makefile)
 SEED = int(os.environ.get("SKYLOOP_SIGNAL_SEED", "13"))  # another seed: other moments
 LIMIT_S = 2.0  # issue 13: from the signal to the exit
 SIGNALS = (signal.SIGTERM, signal.SIGINT)

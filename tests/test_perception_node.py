@@ -69,6 +69,7 @@ def test_queue_keeps_what_arrives_in_time(node_and_sender):
     assert node.dropped == 0
 
 
+@pytest.mark.timing
 def test_flooded_then_sigterm_exits_fast_and_clean(tmp_path):
     """``skyloop perception`` flooded with whole steps (clock, odometry, a 2,000-point
     scan; an episode START first) as fast as this process can publish them, then

@@ -203,6 +203,7 @@ def watch_up(args: list[str], on_line, timeout: float = 60.0) -> tuple[int, str]
     return proc.returncode, "".join(lines)
 
 
+@pytest.mark.timing
 def test_child_death_stops_the_graph():
     proc, pids = flying_graph()
     try:
@@ -219,6 +220,7 @@ def test_child_death_stops_the_graph():
             proc.kill()
 
 
+@pytest.mark.timing
 @pytest.mark.parametrize("sig,code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
                          ids=["ctrl-c", "sigterm"])
 def test_a_signal_stops_the_graph_with_a_summary(sig, code):
@@ -237,6 +239,7 @@ def test_a_signal_stops_the_graph_with_a_summary(sig, code):
             proc.kill()
 
 
+@pytest.mark.timing
 def test_a_killed_launcher_leaves_no_child():
     """SIGKILL of ``skyloop up`` mid-run (nothing of its own runs): every child goes
     within 2 s, by its parent-death signal (``launcher._pdeathsig``), with whatever it
@@ -263,6 +266,7 @@ def test_a_killed_launcher_leaves_no_child():
                 os.killpg(pid, signal.SIGKILL)
 
 
+@pytest.mark.timing
 def test_the_launcher_names_the_nodes_it_had_to_force_kill(capsys):
     """What the graph tests' "force-killed" checks rest on: a child that ignores SIGTERM
     is SIGKILLed after the grace period and named; one that stops is not."""
