@@ -431,6 +431,54 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     assert sum(e.outcome == "aborted" for e in episodes) == s["aborted"]
 
 
+def test_a_killed_policy_is_restarted_in_real_time(tmp_path):
+    """The chaos test's fault in real time (10 Hz, the sim never waits for a command):
+    the policy SIGKILLed mid-episode; the vehicle's failsafe holds (then lands), the
+    launcher names the policy and starts it again, the new policy takes the vehicle
+    again, the run finishes its episodes, the cut one ``aborted``, the log whole."""
+    from bus import keys
+    from bus.node import Bus
+    from bus.session import SessionConfig
+
+    out = tmp_path / "rt"
+    args = up_args("--realtime", "--episodes", "3", "--max-steps", "30", "--policy",
+                   "scripted", "--restart", "on-failure", "--log-dir", str(out), "--json",
+                   str(out / "summary.json"), "--param", "COM_OF_LOSS_T=0.5",
+                   "--param", "SKY_HOLD_LAND_T=1.0")
+    bus = Bus.open(SessionConfig(hub=args[args.index("--hub") + 1]))
+    texts: list[str] = []
+    bus.subscribe(keys.STATUS, "uav1", lambda msg: texts.extend(map(str, msg.event_texts)))
+    killed_at: list[int] = []
+
+    def on_line(line: str, pids: dict[str, int]) -> None:
+        if line.startswith("episode ") and not killed_at:  # a moment into the next one
+            killed_at.append(len(texts))
+            threading.Timer(0.5, os.kill, (pids["policy"], signal.SIGKILL)).start()
+
+    try:
+        code, text = watch_up(args, on_line, timeout=120)
+    finally:
+        bus.close()
+    assert code == 0, text
+    assert "node 'policy' exited (code -9)" in text and "restarting it (1/3)" in text
+    after = texts[killed_at[0]:]
+    assert "Offboard" in after, after  # the restarted policy took over
+    # until then the vehicle held (and landed, if the new policy came later than
+    # SKY_HOLD_LAND_T), or crashed into what the scripted policy flew at
+    hold, land, crash = ("Failsafe: setpoints lost, holding", "Failsafe: landing",
+                         "Collision: disarmed")
+    seq = [t for t in after[:after.index("Offboard")] if t in (hold, land, crash)]
+    assert seq[:1] == [crash] or seq in ([hold], [hold, land]) or \
+        seq[:2] in ([hold, land], [hold, crash]), after
+    s = json.loads((out / "summary.json").read_text())
+    assert s["mode"] == "realtime" and s["restarts"] == {"policy": 1}, s
+    assert s["episodes"] == 3 and s["aborted"] >= 1, s
+    [mcap] = list(out.glob("*/*.mcap"))
+    episodes, report = read_episodes(mcap)
+    assert report.clean and len(episodes) == 3 and all(e.complete for e in episodes)
+    assert sum(e.outcome == "aborted" for e in episodes) == s["aborted"]
+
+
 def test_a_restarted_router_lets_the_run_go_on(tmp_path):
     """``--router --restart on-failure``: the router SIGKILLed mid-run is started again on
     its endpoint, the Zenoh clients reconnect by themselves, the policy rejoins, and
