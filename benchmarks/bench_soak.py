@@ -12,10 +12,13 @@ back to back. The benchmark watches from outside, as a ground station would:
   that step: perception, policy, MAVLink and bridge in between), p50/p99/max; steps
   whose setpoint came more than one control period late (``late``) or never
   (``missing``).
-- The launcher's summary at the end (SIGINT after N minutes): episodes, outcomes.
+- The launcher's summary at the end (SIGINT after N minutes): episodes, outcomes, and
+  what each node's bounded queues dropped (``soak_dropped``: node -> count; the nodes'
+  counters lines, ``skyloop.launcher.COUNTERS_LINE``).
 
 Keys: ``soak_minutes``, ``soak_steps``, ``soak_rss_growth_pct_max``,
-``soak_rss_mb`` (node -> [warm, end]), ``soak_windows`` (list of per-window dicts).
+``soak_rss_mb`` (node -> [warm, end]), ``soak_windows`` (list of per-window dicts),
+``soak_dropped``.
 """
 
 from __future__ import annotations
@@ -96,7 +99,7 @@ def run(quick: bool, minutes: float | None = None) -> dict:
     udp = [_free(socket.SOCK_DGRAM) for _ in range(4)]
     logs = tempfile.TemporaryDirectory()  # the recorder runs too (its memory counts)
     cmd = [sys.executable, "-m", "skyloop", "up", "--realtime", "--episodes", "1000000",
-           "--log-dir", logs.name,
+           "--log-dir", logs.name, "--json", os.path.join(logs.name, "summary.json"),
            "--hub", hub, "--api-port", str(udp[0]), "--api-local-port", str(udp[1]),
            "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3])]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -147,6 +150,10 @@ def run(quick: bool, minutes: float | None = None) -> dict:
         except subprocess.TimeoutExpired:
             proc.kill()
         watch.close()
+        try:
+            counters = json.load(open(os.path.join(logs.name, "summary.json")))["counters"]
+        except (OSError, ValueError, KeyError):  # the launcher died before its summary
+            counters = {}
         logs.cleanup()
     summary = next((x for x in lines if x.startswith("summary: ")), "").strip()
     rss = {name: [round(warm[name], 1), round(final[name], 1)] for name in pids
@@ -154,7 +161,9 @@ def run(quick: bool, minutes: float | None = None) -> dict:
     growth = {name: 100.0 * (b - a) / a for name, (a, b) in rss.items()}
     return {"soak_minutes": minutes, "soak_steps": sum(w["steps"] for w in windows),
             "soak_rss_mb": rss, "soak_rss_growth_pct_max": max(growth.values(), default=0.0),
-            "soak_windows": windows, "soak_summary": summary, "peers": {}}
+            "soak_windows": windows, "soak_summary": summary,
+            "soak_dropped": {name: c.get("dropped", 0) for name, c in counters.items()},
+            "peers": {}}
 
 
 if __name__ == "__main__":

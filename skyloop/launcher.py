@@ -68,6 +68,9 @@ from skyloop.stack_settings import UpCommand
 # the READY lines are for people reading the output: readiness comes over the bus.
 EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "
+#: a node's last line: what it did and dropped (``counters_line``); the launcher sums them
+#: per node over restarts into the summary's ``counters`` (the bounded queues' drops)
+COUNTERS_LINE = "SKYLOOP-COUNTERS "
 READY_LINE = "SKYLOOP-POLICY-READY"
 SIM_READY_LINE = "SKYLOOP-SIM-READY"
 STARTED_LINE = "started {name} (pid {pid})"  # one a child, and again on each restart
@@ -154,6 +157,7 @@ class Graph:
         self.episodes: list[dict] = []
         self.summary: dict | None = None
         self.log_path: str | None = None
+        self.counters: dict[str, collections.Counter[str]] = {}  # node -> its last line's
         self.ready = {name: threading.Event() for name in ("policy", "record", "sim", "viz")}
         self.restarts: collections.Counter[str] = collections.Counter()
         self.cpu_at_go: dict[int, float] = {}  # pid -> CPU seconds when "go" was sent
@@ -206,6 +210,10 @@ class Graph:
                 if child.name == "sim" and self.cpu_at_go:  # the episodes are over
                     self.cpu_at_end = self.read_cpu()
                 self.summary = json.loads(line[len(SUMMARY_LINE):])
+            elif line.startswith(COUNTERS_LINE):
+                said = json.loads(line[len(COUNTERS_LINE):])
+                with self._lock:
+                    self.counters.setdefault(child.name, collections.Counter()).update(said)
             elif child.name == "record" and line.startswith("recorded "):
                 self.log_path = line.rsplit(" into ", 1)[-1].split(";")[0]
             elif child.name == "viz" and line.startswith("viz: drawing"):
@@ -249,8 +257,14 @@ class Graph:
 
     def stop(self, grace: float = GRACE_S, keep: str | None = None) -> list[str]:
         """SIGTERM every live child (but ``keep``), SIGKILL what is left after ``grace``
-        seconds; the names of those (see :meth:`_stop`)."""
-        return self._stop([c for c in self.children if c.name != keep], grace)
+        seconds; the names of those (see :meth:`_stop`). Their last lines (the counters)
+        are read before it returns."""
+        children = [c for c in self.children if c.name != keep]
+        killed = self._stop(children, grace)
+        for c in children:
+            if c.reader is not None:
+                c.reader.join(1.0)
+        return killed
 
     @staticmethod
     def _stop(children: list[Child], grace: float) -> list[str]:
@@ -411,11 +425,13 @@ def run_up(args: UpCommand) -> int:
         if graph.cpu_at_go:  # the run had started: where its time went so far
             graph.cpu_since_go()
         graph.stop()
-        if graph.summary is not None:
-            _summary(graph, args, time.monotonic() - t0)
+        if graph.summary is not None:  # written as at the end: what was flown so far
+            _write_json(args, _summary(graph, args, time.monotonic() - t0))
         else:
             print(f"summary: {len(graph.episodes)} episodes finished before the stop",
                   flush=True)
+            _write_json(args, {"episodes": len(graph.episodes), "stopped_by": signum,
+                               "counters": {k: dict(v) for k, v in graph.counters.items()}})
         return 128 + signum
     except TimeoutError as err:
         graph.stop()
@@ -427,10 +443,7 @@ def run_up(args: UpCommand) -> int:
     finally:  # every return above stopped the nodes first
         if bus is not None:
             bus.close()
-    summary = _summary(graph, args, time.monotonic() - t0)
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(summary, indent=2))
+    _write_json(args, _summary(graph, args, time.monotonic() - t0))
     if args.viz == "web":  # the run is over; its view stays until Ctrl-C or SIGTERM
         print("the web viewer keeps the run (address above): Ctrl-C to stop", flush=True)
         try:
@@ -506,6 +519,22 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
         per = ", ".join(f"{k} {v:.2f}" for k, v in s["cpu_ms_per_step"].items())
         print(f"cpu per control step after go (ms): {per}; total "
               f"{sum(s['cpu_ms_per_step'].values()):.2f}", flush=True)
+    if graph.counters:
+        s["counters"] = {k: dict(v) for k, v in sorted(graph.counters.items())}
+        drops = ", ".join(f"{k} {v.get('dropped', 0)}" for k, v in s["counters"].items())
+        print(f"dropped from bounded queues (overload): {drops}", flush=True)
     if graph.log_path:
         print(f"log: {graph.log_path}", flush=True)
     return s
+
+
+def _write_json(args: UpCommand, summary: dict[str, Any]) -> None:
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+
+
+def counters_line(counters: dict[str, int]) -> str:
+    """A node's last line for the launcher (:data:`COUNTERS_LINE`): its counters, with
+    ``dropped`` (what its bounded queues dropped) among them."""
+    return COUNTERS_LINE + json.dumps(counters, sort_keys=True)

@@ -92,6 +92,10 @@ def cmd_perception(args: PerceptionCommand) -> int:
         logging.getLogger("skyloop.perception").info(
             "published %d observations, dropped %d messages (overload; %d episode events "
             "or parameters among them)", node.published, node.dropped, node.dropped_events)
+        from skyloop.launcher import counters_line
+
+        print(counters_line({"published": node.published, "dropped": node.dropped,
+                             "dropped_events": node.dropped_events}), flush=True)
     return 0
 
 
@@ -202,6 +206,9 @@ def cmd_bridge(args: BridgeCommand) -> int:
         bus.close()
         node.close()
         logging.getLogger("skyloop.bridge").info("bridge: %s", node.counters())
+        from skyloop.launcher import counters_line
+
+        print(counters_line(node.counters()), flush=True)
     return 0
 
 

@@ -312,6 +312,7 @@ def run_record(args: RecordCommand) -> int:
 
     from bus.record import run_record as record
     from bus.session import SessionConfig
+    from skyloop.launcher import counters_line
 
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
@@ -329,6 +330,7 @@ def run_record(args: RecordCommand) -> int:
           f"derived {c['derived']} (TF, clock, markers, path), view errors "
           f"{c['view_errors'] + c.get('scene_errors', 0)}",
           flush=True)
+    print(counters_line({k: v for k, v in c.items() if isinstance(v, int)}), flush=True)
     return 0
 
 
