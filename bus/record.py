@@ -374,8 +374,8 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
         if ready is not None:
             ready.set()
         try:
-            while not stop.wait(0.5):
-                pass
+            while not stop.is_set():  # not stop.wait(): a signal handler may set it
+                time.sleep(0.1)  # in this thread (Event.set in Event.wait: deadlock)
         except KeyboardInterrupt:
             pass
         counters = recorder.stop()

@@ -40,6 +40,7 @@ import logging
 import os
 import re
 import threading
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -243,8 +244,8 @@ def run_router(listen: Sequence[str] | str = (HUB,),
     log.info("zenoh router %s listening on %s", session.info.zid(), list(_endpoints(listen)))
     stop = stop_event if stop_event is not None else threading.Event()
     try:
-        while not stop.wait(0.5):
-            pass
+        while not stop.is_set():  # not stop.wait(): a signal handler may set it in
+            time.sleep(0.1)  # this thread (Event.set inside Event.wait: deadlock)
     except KeyboardInterrupt:
         pass
     finally:

@@ -129,3 +129,41 @@ def quiet_broken_pipe(run: Callable[[], int]) -> int:
         except (OSError, ValueError):  # not a real file (captured output): nothing to do
             pass
         return 128 + signal.SIGPIPE
+
+
+class StopFlag:
+    """A stop request a signal handler may set: :meth:`set` takes no lock.
+
+    ``threading.Event.set`` takes the event's lock; a handler runs in the main thread
+    between two bytecodes, so a signal that arrives while that thread holds the lock
+    (inside ``Event.wait``, or inside the handler's own ``Event.set`` when a second
+    signal follows the first) deadlocks it: seen, a policy and a perception that
+    outlived their SIGKILLed launcher (both got its parent-death SIGTERM). Readers poll
+    :meth:`is_set` (``node.run(stop.is_set)``) or :meth:`wait`, which sleeps in short
+    steps."""
+
+    def __init__(self) -> None:
+        self._set = False
+
+    def set(self) -> None:
+        self._set = True
+
+    def is_set(self) -> bool:
+        return self._set
+
+    def wait(self, timeout: float, step: float = 0.05) -> bool:
+        """Sleep until set or ``timeout`` seconds passed; whether it is set."""
+        import time
+
+        end = time.monotonic() + timeout
+        while not self._set and time.monotonic() < end:
+            time.sleep(min(step, max(0.0, end - time.monotonic())))
+        return self._set
+
+
+def stop_flag_on_signals() -> StopFlag:
+    """A :class:`StopFlag` that SIGINT and SIGTERM set."""
+    stop = StopFlag()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop

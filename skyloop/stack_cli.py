@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
-import threading
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -41,11 +39,11 @@ def _open_bus(args: BusFlags) -> Any:
                                                args.zenoh_config))
 
 
-def _stop_event() -> threading.Event:
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    return stop
+def _stop_event() -> Any:
+    """SIGINT and SIGTERM set the returned flag (``skyloop.signals.StopFlag``: no lock)."""
+    from skyloop.signals import stop_flag_on_signals
+
+    return stop_flag_on_signals()
 
 
 def _raise_on_term() -> None:

@@ -307,19 +307,16 @@ def run_viz(args: VizCommand) -> int:
 def run_record(args: RecordCommand) -> int:
     """Record until SIGINT/SIGTERM, then print where the log is and its counters."""
     import logging
-    import signal
-    import threading
 
     from bus.record import run_record as record
     from bus.session import SessionConfig
     from skyloop.launcher import counters_line
+    from skyloop.signals import stop_flag_on_signals
 
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     cfg = SessionConfig.from_flags(args.mode, args.connect, args.listen, args.zenoh_config)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_flag_on_signals()
     result = record(args.out, cfg, stop, vehicle=args.vehicle, run_name=args.run_name,
                     compression=args.compression, queue_size=args.queue,
                     split_episodes=args.split_episodes, ros_view=not args.no_ros_view)
@@ -339,12 +336,11 @@ def run_router(args: RouterCommand) -> int:
     unreadable ``--zenoh-config``) is one line, exit 2."""
     import logging
     import os
-    import signal
     import sys
-    import threading
 
     from bus.session import SessionConfig
     from bus.session import run_router as router
+    from skyloop.signals import stop_flag_on_signals
 
     listen = args.listen if args.listen is not None else os.environ.get(ENV_LISTEN) or HUB
     config = (args.zenoh_config if args.zenoh_config is not None
@@ -352,9 +348,7 @@ def run_router(args: RouterCommand) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     import zenoh  # Zenoh's own log to stderr when RUST_LOG is set (bus/certs.py: the
     zenoh.try_init_log_from_env()  # access control's decisions at TRACE)
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_flag_on_signals()
     try:
         router(listen, stop, SessionConfig(mode="router", config_file=config))
     except ValueError as err:

@@ -497,8 +497,8 @@ def run_live(vehicle: str, target: Target, stop: threading.Event, *,
         print(f"viz: drawing {vehicle} to {url or target.path or 'the native viewer'}",
               flush=True)
         try:
-            while not stop.wait(0.2):
-                pass
+            while not stop.is_set():  # not stop.wait(): a signal handler may set it
+                time.sleep(0.1)  # in this thread (Event.set in Event.wait: deadlock)
         except KeyboardInterrupt:
             pass
         feed.close()
