@@ -255,6 +255,11 @@ class Graph:
                 raise TimeoutError(f"{what} not ready within {timeout:.0f} s")
         return None
 
+    def counter_totals(self) -> dict[str, dict[str, int]]:
+        """The nodes' counters lines summed per node (over restarts), by node name."""
+        with self._lock:
+            return {k: dict(v) for k, v in sorted(self.counters.items())}
+
     def stop(self, grace: float = GRACE_S, keep: str | None = None) -> list[str]:
         """SIGTERM every live child (but ``keep``), SIGKILL what is left after ``grace``
         seconds; the names of those (see :meth:`_stop`). Their last lines (the counters)
@@ -431,7 +436,7 @@ def run_up(args: UpCommand) -> int:
             print(f"summary: {len(graph.episodes)} episodes finished before the stop",
                   flush=True)
             _write_json(args, {"episodes": len(graph.episodes), "stopped_by": signum,
-                               "counters": {k: dict(v) for k, v in graph.counters.items()}})
+                               "counters": graph.counter_totals()})
         return 128 + signum
     except TimeoutError as err:
         graph.stop()
@@ -520,7 +525,7 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
         print(f"cpu per control step after go (ms): {per}; total "
               f"{sum(s['cpu_ms_per_step'].values()):.2f}", flush=True)
     if graph.counters:
-        s["counters"] = {k: dict(v) for k, v in sorted(graph.counters.items())}
+        s["counters"] = graph.counter_totals()
         drops = ", ".join(f"{k} {v.get('dropped', 0)}" for k, v in s["counters"].items())
         print(f"dropped from bounded queues (overload): {drops}", flush=True)
     if graph.log_path:
