@@ -47,6 +47,7 @@ processes it replaced."""
 from __future__ import annotations
 
 import collections
+import functools
 import json
 import os
 import signal
@@ -121,7 +122,12 @@ def exited(proc: subprocess.Popen) -> bool:
         return proc.poll() is not None
 
 
-def _pdeathsig() -> None:  # runs in the child between fork and exec: no Zenoh there
+def _pdeathsig(launcher_pid: int) -> None:  # in the child between fork and exec: no Zenoh
+    """SIGTERM when the launcher (``launcher_pid``, taken before the fork) dies. The
+    parent-death signal is armed only from the ``prctl`` on: a launcher that died since
+    the fork sends none, so a child whose parent is no longer the launcher (reparented to
+    init or a subreaper) exits at once, as the signal would have ended it (128 + SIGTERM),
+    before it runs anything."""
     block_until_started()  # a stop signal in the interpreter's start-up waits for skyloop
     try:
         import ctypes
@@ -129,6 +135,8 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec: no Zenoh t
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except Exception:  # noqa: BLE001 - not Linux: children may outlive a killed launcher
         pass
+    if os.getppid() != launcher_pid:  # the launcher died between the fork and the prctl
+        os._exit(128 + signal.SIGTERM)
 
 
 @dataclass
@@ -174,7 +182,7 @@ class Graph:
             [sys.executable, "-m", "skyloop", *args], env=env, stdin=stdin,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT, text=True, bufsize=1, start_new_session=True,
-            preexec_fn=_pdeathsig)
+            preexec_fn=functools.partial(_pdeathsig, os.getpid()))
         child = Child(name, proc)
         self.children.append(child)
         child.reader = threading.Thread(target=self._read, args=(child,), daemon=True)

@@ -14,6 +14,10 @@ loopback; the moments and signals are drawn from a seeded generator.
   each node's own stop is measured, not the launcher's SIGTERM after the first death;
   its readers then show what the nodes printed (``--verbose``).
 
+* Orphaned at birth: a launcher that dies between a child's fork and its parent-death
+  ``prctl`` sends that child no signal; the child exits at once instead of running
+  (``launcher._pdeathsig``'s check of its parent).
+
 Each time: the process exits within 2 s of the signal, as seen from here; exits 0 (a node
 whose stop event ended it) or 128 + the signal (``skyloop.signals``: the signal ended
 it mid-call, or during start-up); prints no traceback; and leaves no process of its
@@ -208,3 +212,47 @@ def test_every_node_stops_within_2_s_of_a_signal_mid_episode(tmp_path):
     assert "force-killed" not in out, out[-3000:]
     assert proc.returncode == 1, (proc.returncode, out[-3000:])  # nodes died: named
     assert "exited (code" in out, out[-3000:]
+
+
+# A launcher (the real Graph.start) that dies in the race window: its child, between the
+# fork and the prctl, SIGKILLs it and waits until reparented; then _pdeathsig goes on.
+# The child's program (argv[2], as the interpreter) would sleep a minute.
+LAUNCHER_DIES_BEFORE_PRCTL = """
+import os, signal, sys, time
+from skyloop import launcher
+
+def launcher_dies_here():
+    with open(sys.argv[1], "w") as f:
+        f.write(str(os.getpid()))
+    parent = os.getppid()
+    os.kill(parent, signal.SIGKILL)
+    while os.getppid() == parent:
+        time.sleep(0.001)
+
+launcher.block_until_started = launcher_dies_here
+sys.executable = sys.argv[2]
+launcher.Graph(dict(os.environ)).start("orphan", [])
+"""
+
+
+def test_a_child_whose_launcher_died_before_its_prctl_exits_at_once(tmp_path):
+    """No parent-death signal comes to a child whose launcher died before its prctl:
+    it sees that its parent is no longer the launcher and exits before it runs its
+    program, instead of living on as an orphan."""
+    pid_file, program = tmp_path / "child.pid", tmp_path / "program"
+    program.write_text("#!/bin/sh\nexec sleep 60\n")
+    program.chmod(0o755)
+    fake = subprocess.run([sys.executable, "-c", LAUNCHER_DIES_BEFORE_PRCTL, str(pid_file),
+                           str(program)], cwd=ROOT, stdin=subprocess.DEVNULL,
+                          capture_output=True, text=True, timeout=60)
+    assert fake.returncode == -signal.SIGKILL, (fake.returncode, fake.stderr[-3000:])
+    pid = int(pid_file.read_text())
+    try:
+        deadline = time.monotonic() + LIMIT_S
+        while alive(pid) and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert not alive(pid), Path(f"/proc/{pid}/cmdline").read_bytes()  # an orphan runs
+        assert exit_status(pid) in (None, 128 + signal.SIGTERM)  # None: reaped already
+    finally:
+        if alive(pid):
+            os.kill(pid, signal.SIGKILL)
