@@ -5,6 +5,9 @@ gradient step per env step after the same warm-up:
 
 - ``train_env_steps_per_s``: ``skyloop train`` as it runs by default (a collector process
   beside the learner, ``policy.training.collector``);
+- ``train_no_pipeline_env_steps_per_s``: the same with ``--no-pipeline`` (one learner
+  thread computes the whole update; the default computes the next TD target in a second
+  thread, ``policy.algorithms.pipeline``);
 - ``train_bf16_env_steps_per_s``: the same with ``--precision bf16`` (mixed precision);
 - ``train_sync_env_steps_per_s``: ``skyloop train --sync`` (env and learner in turn);
 - ``sb3_train_env_steps_per_s``: Stable-Baselines3's ``TD3.learn()`` on the same env
@@ -46,7 +49,8 @@ class _Done(Exception):
     """Raised from the episode callback once enough steps are timed."""
 
 
-def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str = "fp32") -> float:
+def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str = "fp32",
+          pipeline: bool = True) -> float:
     """Env steps/s of a Trainer run between SETTLE and SETTLE + steps updated steps."""
     marks: list[tuple[float, int]] = []
 
@@ -59,7 +63,7 @@ def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str = "fp3
         cfg = TrainConfig(algo="td3", reward="abr", scenario="valley", episodes=10**6,
                           seed=seed, start_steps=START, buffer_size=100_000,
                           checkpoint_every=10**6, sync=sync, threads=threads,
-                          precision=precision, progress=False)
+                          precision=precision, pipeline=pipeline, progress=False)
         try:
             Trainer(cfg, Path(tmp)).run(on_episode=on_episode)
         except _Done:
@@ -123,11 +127,13 @@ def _collector(n_envs: int, steps: int) -> float:
 
 def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     steps, repeats = (600, 1) if quick else (3000, 3)
-    rows: dict[str, list[float]] = {"parallel": [], "parallel_bf16": [], "sync": [],
-                                    "sb3": []}
+    rows: dict[str, list[float]] = {"parallel": [], "parallel_no_pipeline": [],
+                                    "parallel_bf16": [], "sync": [], "sb3": []}
     torch.set_num_threads(1)
     for r in range(repeats):
         rows["parallel"].append(_ours(False, steps, threads, seed=r))
+        rows["parallel_no_pipeline"].append(_ours(False, steps, threads, seed=r,
+                                                  pipeline=False))
         rows["parallel_bf16"].append(_ours(False, steps, threads, seed=r, precision="bf16"))
         rows["sync"].append(_ours(True, steps, 1, seed=r))
         sb3 = _sb3(steps, seed=r)
@@ -136,6 +142,7 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     med = {k: statistics.median(v) for k, v in rows.items() if v}
     out: dict[str, Any] = {
         "train_env_steps_per_s": med["parallel"],
+        "train_no_pipeline_env_steps_per_s": med["parallel_no_pipeline"],
         "train_bf16_env_steps_per_s": med["parallel_bf16"],
         "train_sync_env_steps_per_s": med["sync"],
         "speedup_vs_sync": med["parallel"] / med["sync"],

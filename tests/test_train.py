@@ -161,6 +161,34 @@ def test_parallel_mode_keeps_one_update_per_env_step(tmp_path):
     assert sum(int(r.split(",")[2]) for r in rows) <= state["total_steps"]
 
 
+def test_a_collector_whose_learner_died_while_it_started_ends_at_once(tmp_path):
+    """The learner may die before the collector's parent-death signal is set (the spawn
+    takes a second of imports): the collector sees it is not the learner's child and
+    ends before building anything."""
+    import functools
+
+    import torch.multiprocessing as tmp
+
+    from policy.training.collector import CollectorSpec, collector_main
+
+    marker = tmp_path / "envs-built"
+    ctx = tmp.get_context("spawn")
+    spec = CollectorSpec(make_envs=functools.partial(Path.touch, marker), envs=1,
+                         actor_kwargs={}, exploration_noise=0.2, seed=0, max_action=2.0,
+                         action_dim=4, start_steps=0, next_episode=0, steps=0, max_lead=1,
+                         learner_pid=1)  # not its parent: as if the learner were gone
+    recv, send = ctx.Pipe(duplex=False)
+    stop = ctx.Event()  # referenced until the child has it
+    proc = ctx.Process(target=collector_main, args=(send, spec, None, stop, abs))
+    proc.start()
+    send.close()
+    proc.join(timeout=60)
+    assert proc.exitcode == 0
+    assert not marker.exists()
+    with pytest.raises(EOFError):
+        recv.recv()
+
+
 def test_parallel_mode_draws_the_random_phase_as_sync_does(tmp_path):
     """Before the first update both loops take the same actions on the same episodes."""
     kw = {"start_steps": 100_000}

@@ -333,13 +333,35 @@ class TD3:
 
         ``actor_loss`` is reported only on delayed (actor) steps. ``train_actor=False``
         steps the critics (and the target updates) only: the actor stays as it is (a
-        learner warming a fresh critic up under a trained actor).
+        learner warming a fresh critic up under a trained actor). The three parts, in
+        order: ``target`` (y, eq. 2.12), ``learn`` (critic and delayed actor steps) and, on
+        delayed steps, ``update_targets`` (``policy.algorithms.pipeline`` runs the first
+        in a second thread).
         """
-        c = self.config
-        self.updates += 1
-        if self.device.type != "cpu":
-            batch = Batch(*(t.to(self.device, non_blocking=True) for t in batch))
+        batch = self.to_device(batch)
         y = self.target(batch.next_state, batch.reward, batch.done)
+        out = self.learn(batch, y, train_actor)
+        if self.delayed_step():
+            self.update_targets()
+        return out
+
+    def to_device(self, batch: Batch) -> Batch:
+        """``batch`` on the learner's device (as it is on the CPU)."""
+        if self.device.type == "cpu":
+            return batch
+        return Batch(*(t.to(self.device, non_blocking=True) for t in batch))
+
+    def delayed_step(self) -> bool:
+        """Whether the last ``learn`` was a delayed step (actor and target updates)."""
+        return self.updates % self.config.policy_delay == 0
+
+    def learn(self, batch: Batch, y: torch.Tensor, train_actor: bool = True
+              ) -> dict[str, float]:
+        """The gradient steps of one update given its TD target ``y``: the critics on
+        eq. 2.13, then, every ``policy_delay`` calls and if ``train_actor``, the actor on
+        the deterministic policy gradient through Q_1. Counts the update; does not touch
+        the target networks (``update_targets``)."""
+        self.updates += 1
         state = batch.state.to(self.dtype)  # no copy in float32
 
         critic_loss, q = self._critic_loss(state, batch.action, y)
@@ -350,20 +372,22 @@ class TD3:
         self.lp["critic"].changed()
         out = {"critic_loss": critic_loss.item(), "q1": q[0].mean().item()}
 
-        if self.updates % c.policy_delay == 0:  # delayed policy and target updates
-            if train_actor:
-                actor_loss = self._actor_loss(state)
-                self.actor_opt.zero_grad(set_to_none=True)
-                actor_loss.backward()
-                self.lp["actor"].grads_to_master()
-                self.actor_opt.step()
-                self.lp["actor"].changed()
-                out["actor_loss"] = actor_loss.item()
-            for target, source in self._pairs:
-                soft_update(target, source, c.tau)
-            self.lp["actor_target"].changed()
-            self.lp["critic_target"].changed()
+        if self.delayed_step() and train_actor:  # delayed policy update
+            actor_loss = self._actor_loss(state)
+            self.actor_opt.zero_grad(set_to_none=True)
+            actor_loss.backward()
+            self.lp["actor"].grads_to_master()
+            self.actor_opt.step()
+            self.lp["actor"].changed()
+            out["actor_loss"] = actor_loss.item()
         return out
+
+    def update_targets(self) -> None:
+        """theta' <- tau theta + (1 - tau) theta' for the actor and both critics."""
+        for target, source in self._pairs:
+            soft_update(target, source, self.config.tau)
+        self.lp["actor_target"].changed()
+        self.lp["critic_target"].changed()
 
     # ------------------------------------------------------------------ checkpoints
 

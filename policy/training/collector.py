@@ -24,7 +24,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -151,6 +151,9 @@ class CollectorSpec:
     next_episode: int
     steps: int
     max_lead: int
+    # the learner (built there): the collector checks it is still its parent once its
+    # parent-death signal is set, since the learner may die while it starts
+    learner_pid: int = field(default_factory=os.getpid)
 
 
 def _die_with_parent() -> None:
@@ -167,7 +170,10 @@ def collector_main(conn: Any, spec: CollectorSpec, shared: SharedActor, stop: An
                    episode_seed: Callable[[int], int]) -> None:
     """The collector process: rounds of env steps sent to the learner until ``stop``."""
     _die_with_parent()
-    parent = os.getppid()
+    parent = spec.learner_pid
+    if os.getppid() != parent:  # the learner died before the death signal was set
+        conn.close()
+        return
     torch.set_num_threads(1)
     from policy.algorithms.networks import Actor
     from policy.algorithms.td3 import explore

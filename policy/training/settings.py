@@ -96,6 +96,9 @@ class TrainConfig:
     """envs stepped in turn by the collector"""
     max_lead: int = 8
     """parallel mode: env steps the collector may run ahead of the updates"""
+    pipeline: bool = True
+    """parallel mode: a second learner thread computes the next mini-batch's TD target
+    while the first steps the networks (policy.algorithms.pipeline)"""
     device: str = "cpu"
     """the learner's device: cpu, cuda, cuda:1, ..."""
     # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32

@@ -37,7 +37,9 @@ Two loops over the same bookkeeping:
   one env a resumed run continues exactly as an uninterrupted one.
 - parallel (the default): the envs run in a collector process while this process
   updates (``policy.training.collector``); updates per env step stay 1 on average, the collector
-  at most ``max_lead`` steps ahead. The same episode seeds, network initialisation and
+  at most ``max_lead`` steps ahead; with ``pipeline`` (the default) a second learner
+  thread computes the next mini-batch's TD target meanwhile
+  (``policy.algorithms.pipeline``). The same episode seeds, network initialisation and
   random-action phase as ``sync``; *not* reproducible: which actor version chose each
   action after the random phase depends on timing, and so does everything after it.
 
@@ -70,6 +72,7 @@ from tqdm import tqdm
 
 from bus.task import episode_outcome
 from policy.algorithms.agents import make_agent, make_goal_reward
+from policy.algorithms.pipeline import TargetPipeline
 from policy.algorithms.replay import ReplayBuffer
 from policy.algorithms.rewards import RewardConfig
 from policy.algorithms.td3 import flush_denormals
@@ -155,6 +158,7 @@ class Trainer:
         self.outcomes: deque[str] = deque(maxlen=WINDOW)
         self.losses: dict[str, float] = {}
         self._open: dict[int, dict] = {}  # stream -> the episode in progress's sums
+        self._pipeline: TargetPipeline | None = None  # parallel mode's second thread
 
     # -- checkpoints ---------------------------------------------------------------
 
@@ -175,6 +179,8 @@ class Trainer:
         }
 
     def save(self) -> None:
+        if self._pipeline is not None:
+            self._pipeline.settle()  # its worker draws target noise from the agent's state
         tmp = self.out / (CHECKPOINT + ".tmp")
         torch.save(self.state_dict(), tmp)
         os.replace(tmp, self.out / CHECKPOINT)
@@ -211,7 +217,11 @@ class Trainer:
 
     def _update(self) -> None:
         # merged: TD3 reports actor_loss only on its delayed steps; keep the latest
-        self.losses.update(self.agent.update(self.buffer.sample(self.agent.config.batch_size)))
+        if self._pipeline is not None:
+            self.losses.update(self._pipeline.update())
+        else:
+            batch = self.buffer.sample(self.agent.config.batch_size)
+            self.losses.update(self.agent.update(batch))
 
     def _store(self, tr: Transition) -> None:
         """Add one transition to the replay buffer and to its episode's sums."""
@@ -300,6 +310,9 @@ class Trainer:
         proc.start()
         send.close()
         delay = a.policy_delay
+        if c.pipeline:
+            self._pipeline = TargetPipeline(self.agent, partial(self.buffer.sample,
+                                                                a.batch_size))
         try:
             while self.episode < c.episodes:
                 due = self.total_steps - c.start_steps + 1
@@ -328,6 +341,9 @@ class Trainer:
                         if self.episode >= c.episodes:
                             break
         finally:
+            if self._pipeline is not None:
+                self._pipeline.close()
+                self._pipeline = None
             stop.set()
             recv.close()
             proc.join(timeout=10)
