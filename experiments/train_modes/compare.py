@@ -1,7 +1,9 @@
-"""Sample efficiency of the two training loops: ``sync`` against the parallel default.
+"""Sample efficiency of the training loops: ``sync`` against the parallel mode, with one
+learner thread (``parallel``) and with two (``pipeline``, the default since 8ba4645;
+``pipeline_bf16`` with bfloat16 matmuls).
 
-Reads the two grids of this folder (``sync/`` and ``parallel/``, run with
-``skyloop experiment run experiments/train_modes/{sync,parallel}.toml --out ...``) and
+Reads the grids of this folder (one directory per ``MODES`` entry, each run with
+``skyloop experiment run experiments/train_modes/<mode>.toml --out .../<mode>``) and
 writes ``COMPARE.md`` and ``compare.png``: success and collision over the last 500
 episodes against episodes, per mode the mean over seeds with a min-max band, and a table
 of the success window at a few episodes with the 95% t-interval across seeds.
@@ -23,7 +25,10 @@ import numpy as np  # noqa: E402
 from skyloop.experiment.report import read_episodes, t_interval  # noqa: E402
 
 HERE = Path(__file__).parent
-MODES = ("sync", "parallel")
+MODES = ("sync", "parallel", "pipeline", "pipeline_bf16")
+LABELS = {"sync": "sync", "parallel": "parallel, 1 learner thread",
+          "pipeline": "parallel, 2 learner threads (default)",
+          "pipeline_bf16": "the same, --precision bf16"}
 AT = (100, 200, 300, 400)
 
 
@@ -37,19 +42,22 @@ def main() -> None:
     commits = sorted({r["commit"][:10] for m in MODES
                       for r in json.loads((HERE / m / "runs.json").read_text())})
     lines = ["# Training loops: sync vs parallel (TD3+ABR, valley)", "",
-             f"Grids `sync.toml` and `parallel.toml` (3 seeds, 400 episodes each), run at "
-             f"commit {', '.join(commits)}; written by `python {Path(__file__).name}`.", "",
+             f"Grids {', '.join(f'`{m}.toml`' for m in MODES)} (3 seeds, 400 episodes each), "
+             f"run at commits {', '.join(commits)} (each grid's `runs.json`); written by "
+             f"`python {Path(__file__).name}`.", "",
              "Success over the last 500 episodes (the trainer's `success_rate_500`), "
              "mean over seeds [95% t-interval] and each seed.", "",
-             "| episode | " + " | ".join(MODES) + " |", "|---|" + "---|" * len(MODES)]
+             "| episode | " + " | ".join(LABELS[m] for m in MODES) + " |",
+             "|---|" + "---|" * len(MODES)]
     table: dict[int, list[str]] = {a: [] for a in AT}
-    for mode, colour in zip(MODES, ("tab:blue", "tab:orange"), strict=True):
+    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red")
+    for mode, colour in zip(MODES, colours, strict=True):
         for ax, key in zip(axes, ("success_rate_500", "collision_rate_500"), strict=True):
             runs = curves(mode, key)
             n = min(len(c) for c in runs.values())
             y = 100 * np.stack([c[:n] for c in runs.values()])
             x = np.arange(1, n + 1)
-            ax.plot(x, y.mean(0), color=colour, label=f"{mode} ({len(runs)} seeds)")
+            ax.plot(x, y.mean(0), color=colour, label=f"{LABELS[mode]} ({len(runs)} seeds)")
             ax.fill_between(x, y.min(0), y.max(0), color=colour, alpha=0.2)
         for a in AT:
             values = [c[a - 1] for c in curves(mode, "success_rate_500").values()
