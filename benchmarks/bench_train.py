@@ -10,6 +10,8 @@ gradient step per env step after the same warm-up:
   thread, ``policy.algorithms.pipeline``);
 - ``train_bf16_env_steps_per_s``: the same with ``--precision bf16`` (mixed precision);
 - ``train_sync_env_steps_per_s``: ``skyloop train --sync`` (env and learner in turn);
+- ``train_sync_bf16_env_steps_per_s``: the same with ``--precision bf16`` (the peer of
+  the bf16 row: ``speedup_bf16_vs_sync_bf16`` compares like with like);
 - ``sb3_train_env_steps_per_s``: Stable-Baselines3's ``TD3.learn()`` on the same env
   (``train_freq=1, gradient_steps=1``), with denormals flushed as in our trainer
   (``policy.algorithms.td3.flush_denormals``) so that both get the same machine setting.
@@ -49,9 +51,10 @@ class _Done(Exception):
     """Raised from the episode callback once enough steps are timed."""
 
 
-def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str = "fp32",
+def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str | None = None,
           pipeline: bool = True) -> float:
-    """Env steps/s of a Trainer run between SETTLE and SETTLE + steps updated steps."""
+    """Env steps/s of a Trainer run between SETTLE and SETTLE + steps updated steps
+    (``precision`` None: ``TrainConfig``'s default)."""
     marks: list[tuple[float, int]] = []
 
     def on_episode(row: dict) -> None:
@@ -63,7 +66,8 @@ def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str = "fp3
         cfg = TrainConfig(algo="td3", reward="abr", scenario="valley", episodes=10**6,
                           seed=seed, start_steps=START, buffer_size=100_000,
                           checkpoint_every=10**6, sync=sync, threads=threads,
-                          precision=precision, pipeline=pipeline, progress=False)
+                          pipeline=pipeline, progress=False,
+                          **({} if precision is None else {"precision": precision}))
         try:
             Trainer(cfg, Path(tmp)).run(on_episode=on_episode)
         except _Done:
@@ -128,7 +132,8 @@ def _collector(n_envs: int, steps: int) -> float:
 def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     steps, repeats = (600, 1) if quick else (3000, 3)
     rows: dict[str, list[float]] = {"parallel": [], "parallel_no_pipeline": [],
-                                    "parallel_bf16": [], "sync": [], "sb3": []}
+                                    "parallel_bf16": [], "sync": [], "sync_bf16": [],
+                                    "sb3": []}
     torch.set_num_threads(1)
     for r in range(repeats):
         rows["parallel"].append(_ours(False, steps, threads, seed=r))
@@ -136,6 +141,7 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
                                                   pipeline=False))
         rows["parallel_bf16"].append(_ours(False, steps, threads, seed=r, precision="bf16"))
         rows["sync"].append(_ours(True, steps, 1, seed=r))
+        rows["sync_bf16"].append(_ours(True, steps, 1, seed=r, precision="bf16"))
         sb3 = _sb3(steps, seed=r)
         if sb3 is not None:
             rows["sb3"].append(sb3)
@@ -145,12 +151,15 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
         "train_no_pipeline_env_steps_per_s": med["parallel_no_pipeline"],
         "train_bf16_env_steps_per_s": med["parallel_bf16"],
         "train_sync_env_steps_per_s": med["sync"],
+        "train_sync_bf16_env_steps_per_s": med["sync_bf16"],
         "speedup_vs_sync": med["parallel"] / med["sync"],
+        "speedup_bf16_vs_sync_bf16": med["parallel_bf16"] / med["sync_bf16"],
         "collector_env_steps_per_s": _collector(1, min(steps, 1000)),
         "collector_4envs_env_steps_per_s": _collector(4, min(steps, 1000)),
         "config": {"steps_timed": steps, "warmup_random": START, "warmup_updated": SETTLE,
                    "repeats": repeats, "learner_threads": threads, "sync_threads": 1,
-                   "precision": "fp32 (bf16 row: --precision bf16)",
+                   "precision": f"{TrainConfig.precision} (the default; bf16 rows: "
+                                "--precision bf16)",
                    "flush_denormals": True,
                    "hidden": [400, 300], "batch": 100, "torch": torch.__version__},
         "runs": rows, "peers": {},

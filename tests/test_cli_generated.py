@@ -71,10 +71,10 @@ def test_help_shows_every_option_with_the_dataclass_default():
     out = skyloop("train", "--help")
     assert out.returncode == 0, out.stderr
     entries = help_entries(out.stdout)
-    assert_defaults_shown(TrainConfig, entries, {})
+    assert_defaults_shown(TrainConfig, entries, {"pipeline": "--no-pipeline"})
     assert "--algo {td3,ddpg}" in entries["--algo"]  # choices from the Literal types
     assert "{tr,ngr,egr,abr}" in entries["--reward"]
-    assert "{fp32,bf16}" in entries["--precision"]
+    assert "{auto,fp32,bf16}" in entries["--precision"]
     assert "(required)" in entries["--out"]
     assert "--no-sync" not in out.stdout and "--no-resume" not in out.stdout
 
@@ -82,7 +82,7 @@ def test_help_shows_every_option_with_the_dataclass_default():
 def test_choices_are_the_known_algorithms_rewards_and_precisions():
     assert set(get_args(Algo)) == set(ALGOS)
     assert set(get_args(Reward)) == set(GOAL_REWARDS)
-    assert set(get_args(Precision)) == set(PRECISIONS)
+    assert set(get_args(Precision)) == {"auto", *PRECISIONS}
 
 
 def test_no_flags_give_the_dataclass_defaults():

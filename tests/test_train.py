@@ -195,10 +195,21 @@ def test_parallel_mode_draws_the_random_phase_as_sync_does(tmp_path):
     assert _train(tmp_path / "p", 3, sync=False, **kw) == _train(tmp_path / "s", 3, **kw)
 
 
+def test_auto_precision_takes_what_the_device_has_and_says_so(tmp_path):
+    from policy.algorithms.td3 import best_precision
+
+    assert TrainConfig().precision == "auto"
+    summary = Trainer(TrainConfig(episodes=1, **SMALL), tmp_path).run()
+    assert summary["precision"] == best_precision("cpu")
+    state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
+    assert state["config"]["precision"] == "auto"
+    assert state["agent"]["config"]["precision"] == best_precision("cpu")
+
+
 def test_mixed_precision_sync_runs_are_reproducible(tmp_path):
     a = _train(tmp_path / "a", 3, precision="bf16")
     assert a == _train(tmp_path / "b", 3, precision="bf16")
-    assert a != _train(tmp_path / "c", 3)  # and they are not the float32 run
+    assert a != _train(tmp_path / "c", 3, precision="fp32")  # and not the float32 run
     state = torch.load(tmp_path / "a" / CHECKPOINT, weights_only=False)
     assert state["agent"]["config"]["precision"] == "bf16" and state["agent"]["updates"] > 0
 

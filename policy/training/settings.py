@@ -25,7 +25,8 @@ __all__ = ["EVAL_SEED", "OFFLINE_UPDATES", "Algo", "ConfigError", "EvalConfig", 
 #: ``policy.algorithms.rewards.GOAL_REWARDS``) a command line may choose (tests check they agree)
 Algo = Literal["td3", "ddpg"]
 Reward = Literal["tr", "ngr", "egr", "abr"]
-Precision = Literal["fp32", "bf16"]  # the keys of policy.algorithms.td3.PRECISIONS
+#: "auto" and the keys of policy.algorithms.td3.PRECISIONS
+Precision = Literal["auto", "fp32", "bf16"]
 
 #: TD3 updates from logs (``skyloop train --from-logs --updates``;
 #: ``policy.logs.offline.UPDATES``)
@@ -102,9 +103,11 @@ class TrainConfig:
     device: str = "cpu"
     """the learner's device: cpu, cuda, cuda:1, ..."""
     # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32
-    # weights and Adam; policy.algorithms.td3.best_precision says whether it pays on a machine
-    precision: Precision = "fp32"
-    """the update's arithmetic: fp32, or bf16 matmuls with float32 weights and Adam"""
+    # weights and Adam; auto = policy.algorithms.td3.best_precision(device): bf16 where the
+    # device multiplies bfloat16 in hardware, else fp32 (the run records which it took)
+    precision: Precision = "auto"
+    """the update's arithmetic: fp32, bf16 matmuls with float32 weights and Adam, or auto
+    (bf16 where the device has bfloat16 matmul units, else fp32)"""
     env: str = ""
     """a Gymnasium env id instead of --scenario, e.g. BipedalWalkerHardcore-v3"""
     world_every: int = 1

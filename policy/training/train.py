@@ -44,8 +44,10 @@ Two loops over the same bookkeeping:
   action after the random phase depends on timing, and so does everything after it.
 
 Both run with denormals flushed to zero (``policy.algorithms.td3.flush_denormals``: Adam's moments
-of dead units otherwise make every update several times slower) and in float32 unless
-``precision="bf16"`` (mixed precision, ``policy.algorithms.td3``).
+of dead units otherwise make every update several times slower) and, with ``precision``
+"auto" (the default), in mixed precision (bfloat16 matmuls, ``policy.algorithms.td3``)
+where the device multiplies bfloat16 in hardware, else in float32; ``result.json`` and
+the agent's checkpointed config say which.
 
 Resumable in both: a checkpoint is written atomically every ``checkpoint_every``
 episodes and at the end; ``resume=True`` continues from it, truncating the CSV to the
@@ -75,7 +77,7 @@ from policy.algorithms.agents import make_agent, make_goal_reward
 from policy.algorithms.pipeline import TargetPipeline
 from policy.algorithms.replay import ReplayBuffer
 from policy.algorithms.rewards import RewardConfig
-from policy.algorithms.td3 import flush_denormals
+from policy.algorithms.td3 import best_precision, flush_denormals
 from policy.training.collector import (
     Collector,
     CollectorSpec,
@@ -106,6 +108,11 @@ CSV_FIELDS = ["episode", "return", "steps", "outcome", "success_rate_500",
               "abr_patterns", "abr_new_patterns", "abr_groups",
               "world"]  # the world the episode flew (family:/mix: scenarios draw one)
 WINDOW = 500  # success rate over the last 500 episodes (abr-method.md)
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    """``precision`` as the agent takes it: "auto" becomes ``best_precision(device)``."""
+    return best_precision(device) if precision == "auto" else precision
 
 
 def episode_seed(seed: int, episode: int) -> int:
@@ -143,7 +150,8 @@ class Trainer:
             abr = {}
         self.agent = make_agent(config.algo, seed=config.seed, device=config.device,
                                 state_dim=int(np.prod(shape)), action_dim=action_dim,
-                                max_action=self.max_action, precision=config.precision)
+                                max_action=self.max_action,
+                                precision=resolve_precision(config.precision, config.device))
         if not config.env:
             self.agent.task = probe.task.to_dict()  # recorded in the actor files
         self._first_env = probe
@@ -376,7 +384,7 @@ class Trainer:
         with csv_path.open("a", newline="") as f, tqdm(
             total=self.config.episodes, initial=self.episode, unit="ep", smoothing=0.05,
             desc=f"{self.config.algo}+{self.config.reward} {self.config.task} "
-                 f"({mode}, {self.config.precision})",
+                 f"({mode}, {self.agent.config.precision})",
             disable=not self.config.progress,
         ) as bar:
             # a resumed run keeps its file's columns (a CSV begun before a column existed)
@@ -418,7 +426,7 @@ class Trainer:
                    "success_rate_500": self.outcomes.count("success") / max(len(self.outcomes),
                                                                             1),
                    "wall_s": round(self.wall_s, 1), "mode": mode,
-                   "precision": self.config.precision, "curve": str(png),
+                   "precision": self.agent.config.precision, "curve": str(png),
                    "checkpoint": str(ckpt)}
         (self.out / RESULT).write_text(json.dumps(summary, indent=2))
         return summary
