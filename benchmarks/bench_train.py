@@ -1,17 +1,21 @@
 """Training throughput: env steps per second of whole TD3+ABR training runs on the valley.
 
-Three rows in the same run, the same env, network sizes (400-300), batch (100) and one
+Eight rows in the same run, the same env, network sizes (400-300), batch (100) and one
 gradient step per env step after the same warm-up:
 
 - ``train_env_steps_per_s``: ``skyloop train`` as it runs by default (a collector process
   beside the learner, ``policy.training.collector``);
-- ``train_no_pipeline_env_steps_per_s``: the same with ``--no-pipeline`` (one learner
-  thread computes the whole update; the default computes the next TD target in a second
-  thread, ``policy.algorithms.pipeline``);
-- ``train_bf16_env_steps_per_s``: the same with ``--precision bf16`` (mixed precision);
+- ``train_no_pipeline_env_steps_per_s``, ``train_pipeline_target_env_steps_per_s``,
+  ``train_pipeline_actor_env_steps_per_s``: the same with ``--pipeline off`` (one
+  learner thread), ``target`` (a second thread for the TD targets) and ``actor`` (a
+  second thread for the targets, the actor steps and the soft updates;
+  ``policy.algorithms.pipeline``);
+- ``train_fp32_env_steps_per_s``: the default with ``--precision fp32`` (the default is
+  "auto": bfloat16 matmuls where the CPU has bfloat16 units; ``precision`` says which it
+  took here);
 - ``train_sync_env_steps_per_s``: ``skyloop train --sync`` (env and learner in turn);
-- ``train_sync_bf16_env_steps_per_s``: the same with ``--precision bf16`` (the peer of
-  the bf16 row: ``speedup_bf16_vs_sync_bf16`` compares like with like);
+- ``train_sync_fp32_env_steps_per_s``: ``--sync --precision fp32`` (the peer of the fp32
+  row: ``speedup_fp32_vs_sync_fp32`` compares like with like in float32);
 - ``sb3_train_env_steps_per_s``: Stable-Baselines3's ``TD3.learn()`` on the same env
   (``train_freq=1, gradient_steps=1``), with denormals flushed as in our trainer
   (``policy.algorithms.td3.flush_denormals``) so that both get the same machine setting.
@@ -42,7 +46,7 @@ import torch
 from policy.algorithms.td3 import explore, flush_denormals
 from policy.training.collector import Collector
 from policy.training.env import UavNavEnv
-from policy.training.train import TrainConfig, Trainer, episode_seed
+from policy.training.train import TrainConfig, Trainer, episode_seed, resolve_precision
 
 START, SETTLE = 1000, 300  # random steps before updates; updated steps before timing
 
@@ -52,7 +56,7 @@ class _Done(Exception):
 
 
 def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str | None = None,
-          pipeline: bool = True) -> float:
+          pipeline: str | None = None) -> float:
     """Env steps/s of a Trainer run between SETTLE and SETTLE + steps updated steps
     (``precision`` None: ``TrainConfig``'s default)."""
     marks: list[tuple[float, int]] = []
@@ -66,8 +70,9 @@ def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str | None
         cfg = TrainConfig(algo="td3", reward="abr", scenario="valley", episodes=10**6,
                           seed=seed, start_steps=START, buffer_size=100_000,
                           checkpoint_every=10**6, sync=sync, threads=threads,
-                          pipeline=pipeline, progress=False,
-                          **({} if precision is None else {"precision": precision}))
+                          progress=False,
+                          **({} if precision is None else {"precision": precision}),
+                          **({} if pipeline is None else {"pipeline": pipeline}))
         try:
             Trainer(cfg, Path(tmp)).run(on_episode=on_episode)
         except _Done:
@@ -132,16 +137,21 @@ def _collector(n_envs: int, steps: int) -> float:
 def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     steps, repeats = (600, 1) if quick else (3000, 3)
     rows: dict[str, list[float]] = {"parallel": [], "parallel_no_pipeline": [],
-                                    "parallel_bf16": [], "sync": [], "sync_bf16": [],
+                                    "parallel_target": [], "parallel_actor": [],
+                                    "parallel_fp32": [], "sync": [], "sync_fp32": [],
                                     "sb3": []}
     torch.set_num_threads(1)
     for r in range(repeats):
         rows["parallel"].append(_ours(False, steps, threads, seed=r))
         rows["parallel_no_pipeline"].append(_ours(False, steps, threads, seed=r,
-                                                  pipeline=False))
-        rows["parallel_bf16"].append(_ours(False, steps, threads, seed=r, precision="bf16"))
+                                                  pipeline="off"))
+        rows["parallel_target"].append(_ours(False, steps, threads, seed=r,
+                                             pipeline="target"))
+        rows["parallel_actor"].append(_ours(False, steps, threads, seed=r,
+                                            pipeline="actor"))
+        rows["parallel_fp32"].append(_ours(False, steps, threads, seed=r, precision="fp32"))
         rows["sync"].append(_ours(True, steps, 1, seed=r))
-        rows["sync_bf16"].append(_ours(True, steps, 1, seed=r, precision="bf16"))
+        rows["sync_fp32"].append(_ours(True, steps, 1, seed=r, precision="fp32"))
         sb3 = _sb3(steps, seed=r)
         if sb3 is not None:
             rows["sb3"].append(sb3)
@@ -149,17 +159,20 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     out: dict[str, Any] = {
         "train_env_steps_per_s": med["parallel"],
         "train_no_pipeline_env_steps_per_s": med["parallel_no_pipeline"],
-        "train_bf16_env_steps_per_s": med["parallel_bf16"],
+        "train_pipeline_target_env_steps_per_s": med["parallel_target"],
+        "train_pipeline_actor_env_steps_per_s": med["parallel_actor"],
+        "train_fp32_env_steps_per_s": med["parallel_fp32"],
         "train_sync_env_steps_per_s": med["sync"],
-        "train_sync_bf16_env_steps_per_s": med["sync_bf16"],
+        "train_sync_fp32_env_steps_per_s": med["sync_fp32"],
         "speedup_vs_sync": med["parallel"] / med["sync"],
-        "speedup_bf16_vs_sync_bf16": med["parallel_bf16"] / med["sync_bf16"],
+        "speedup_fp32_vs_sync_fp32": med["parallel_fp32"] / med["sync_fp32"],
+        "precision": resolve_precision(TrainConfig.precision, "cpu"),
         "collector_env_steps_per_s": _collector(1, min(steps, 1000)),
         "collector_4envs_env_steps_per_s": _collector(4, min(steps, 1000)),
         "config": {"steps_timed": steps, "warmup_random": START, "warmup_updated": SETTLE,
                    "repeats": repeats, "learner_threads": threads, "sync_threads": 1,
-                   "precision": f"{TrainConfig.precision} (the default; bf16 rows: "
-                                "--precision bf16)",
+                   "precision": f"{TrainConfig.precision} (the default; fp32 rows: "
+                                "--precision fp32)",
                    "flush_denormals": True,
                    "hidden": [400, 300], "batch": 100, "torch": torch.__version__},
         "runs": rows, "peers": {},

@@ -71,10 +71,11 @@ def test_help_shows_every_option_with_the_dataclass_default():
     out = skyloop("train", "--help")
     assert out.returncode == 0, out.stderr
     entries = help_entries(out.stdout)
-    assert_defaults_shown(TrainConfig, entries, {"pipeline": "--no-pipeline"})
+    assert_defaults_shown(TrainConfig, entries, {})
     assert "--algo {td3,ddpg}" in entries["--algo"]  # choices from the Literal types
     assert "{tr,ngr,egr,abr}" in entries["--reward"]
     assert "{auto,fp32,bf16}" in entries["--precision"]
+    assert "{off,target,actor}" in entries["--pipeline"]
     assert "(required)" in entries["--out"]
     assert "--no-sync" not in out.stdout and "--no-resume" not in out.stdout
 

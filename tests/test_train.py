@@ -147,11 +147,13 @@ def _state(pid: int) -> str:
         return "Z"
 
 
-def test_parallel_mode_keeps_one_update_per_env_step(tmp_path):
-    """Collector process and learner: every episode is recorded once, in order, and the
-    learner's updates trail the env steps by at most the collector's bounded lead."""
+@pytest.mark.parametrize("pipeline", ["target", "actor", "off"])
+def test_parallel_mode_keeps_one_update_per_env_step(tmp_path, pipeline):
+    """Collector process and learner (in each of its thread layouts): every episode is
+    recorded once, in order, and the learner's updates trail the env steps by at most the
+    collector's bounded lead."""
     cfg = TrainConfig(episodes=6, **{**SMALL, "sync": False, "envs": 2, "max_lead": 4,
-                                     "precision": "bf16"})
+                                     "precision": "bf16", "pipeline": pipeline})
     assert Trainer(cfg, tmp_path).run()["precision"] == "bf16"
     rows = (tmp_path / "episodes.csv").read_text().splitlines()[1:]
     assert [int(r.split(",")[0]) for r in rows] == list(range(1, 7))
@@ -204,6 +206,19 @@ def test_auto_precision_takes_what_the_device_has_and_says_so(tmp_path):
     state = torch.load(tmp_path / CHECKPOINT, weights_only=False)
     assert state["config"]["precision"] == "auto"
     assert state["agent"]["config"]["precision"] == best_precision("cpu")
+
+
+def test_a_resumed_run_keeps_the_precision_it_began_with(tmp_path):
+    """--precision auto resumes in the checkpoint's arithmetic, exactly; an explicit
+    other precision is a clear error."""
+    full = _train(tmp_path / "full", 3, precision="fp32")
+    _train(tmp_path / "cut", 2, precision="fp32")
+    assert _train(tmp_path / "cut", 3, resume=True, precision="auto") == full
+    state = torch.load(tmp_path / "cut" / CHECKPOINT, weights_only=False)
+    assert state["agent"]["config"]["precision"] == "fp32"
+    with pytest.raises(ValueError, match="trained with --precision fp32, this run asks "
+                                         "for bf16"):
+        _train(tmp_path / "cut", 4, resume=True, precision="bf16")
 
 
 def test_mixed_precision_sync_runs_are_reproducible(tmp_path):

@@ -1,6 +1,7 @@
 """Sample efficiency of the training loops: ``sync`` against the parallel mode, with one
 learner thread (``parallel``) and with two (``pipeline``, the default since 8ba4645;
-``pipeline_bf16`` with bfloat16 matmuls).
+``pipeline_bf16`` with bfloat16 matmuls; ``pipeline_actor`` with the actor steps in the
+second thread).
 
 Reads the grids of this folder (one directory per ``MODES`` entry, each run with
 ``skyloop experiment run experiments/train_modes/<mode>.toml --out .../<mode>``) and
@@ -25,10 +26,11 @@ import numpy as np  # noqa: E402
 from skyloop.experiment.report import read_episodes, t_interval  # noqa: E402
 
 HERE = Path(__file__).parent
-MODES = ("sync", "parallel", "pipeline", "pipeline_bf16")
+MODES = ("sync", "parallel", "pipeline", "pipeline_bf16", "pipeline_actor")
 LABELS = {"sync": "sync", "parallel": "parallel, 1 learner thread",
           "pipeline": "parallel, 2 learner threads (default)",
-          "pipeline_bf16": "the same, --precision bf16"}
+          "pipeline_bf16": "the same, --precision bf16",
+          "pipeline_actor": "--pipeline actor (auto precision)"}
 AT = (100, 200, 300, 400)
 
 
@@ -39,19 +41,22 @@ def curves(mode: str, key: str) -> dict[str, np.ndarray]:
 
 def main() -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharex=True)
-    commits = sorted({r["commit"][:10] for m in MODES
+    modes = [m for m in MODES if (HERE / m / "runs.json").exists()]  # the grids run so far
+    commits = sorted({r["commit"][:10] for m in modes
                       for r in json.loads((HERE / m / "runs.json").read_text())})
     lines = ["# Training loops: sync vs parallel (TD3+ABR, valley)", "",
-             f"Grids {', '.join(f'`{m}.toml`' for m in MODES)} (3 seeds, 400 episodes each), "
+             f"Grids {', '.join(f'`{m}.toml`' for m in modes)} (3 seeds, 400 episodes each), "
              f"run at commits {', '.join(commits)} (each grid's `runs.json`); written by "
              f"`python {Path(__file__).name}`.", "",
              "Success over the last 500 episodes (the trainer's `success_rate_500`), "
              "mean over seeds [95% t-interval] and each seed.", "",
-             "| episode | " + " | ".join(LABELS[m] for m in MODES) + " |",
-             "|---|" + "---|" * len(MODES)]
+             "| episode | " + " | ".join(LABELS[m] for m in modes) + " |",
+             "|---|" + "---|" * len(modes)]
     table: dict[int, list[str]] = {a: [] for a in AT}
-    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red")
-    for mode, colour in zip(MODES, colours, strict=True):
+    colours = dict(zip(MODES, ("tab:blue", "tab:orange", "tab:green", "tab:red",
+                               "tab:purple"), strict=True))
+    for mode in modes:
+        colour = colours[mode]
         for ax, key in zip(axes, ("success_rate_500", "collision_rate_500"), strict=True):
             runs = curves(mode, key)
             n = min(len(c) for c in runs.values())

@@ -18,7 +18,8 @@ from typing import Annotated, ClassVar, Literal, get_args
 
 import tyro
 
-__all__ = ["EVAL_SEED", "OFFLINE_UPDATES", "Algo", "ConfigError", "EvalConfig", "Precision",
+__all__ = ["EVAL_SEED", "OFFLINE_UPDATES", "Algo", "ConfigError", "EvalConfig", "Pipeline",
+           "Precision",
            "Reward", "TrainConfig", "check_at_least"]
 
 #: the agents (the keys of ``policy.algorithms.agents.ALGOS``) and the goal rewards (of
@@ -27,6 +28,10 @@ Algo = Literal["td3", "ddpg"]
 Reward = Literal["tr", "ngr", "egr", "abr"]
 #: "auto" and the keys of policy.algorithms.td3.PRECISIONS
 Precision = Literal["auto", "fp32", "bf16"]
+#: the parallel mode's learner threads (policy.algorithms.pipeline): one; a second for the
+#: TD targets (TargetPipeline); a second for the targets, actor steps and soft updates
+#: (SplitLearner)
+Pipeline = Literal["off", "target", "actor"]
 
 #: TD3 updates from logs (``skyloop train --from-logs --updates``;
 #: ``policy.logs.offline.UPDATES``)
@@ -97,9 +102,10 @@ class TrainConfig:
     """envs stepped in turn by the collector"""
     max_lead: int = 8
     """parallel mode: env steps the collector may run ahead of the updates"""
-    pipeline: bool = True
-    """parallel mode: a second learner thread computes the next mini-batch's TD target
-    while the first steps the networks (policy.algorithms.pipeline)"""
+    pipeline: Pipeline = "target"
+    """parallel mode: a second learner thread for the next TD targets (target), or for the
+    targets, the delayed actor steps and the soft updates (actor); off: one thread
+    (policy.algorithms.pipeline)"""
     device: str = "cpu"
     """the learner's device: cpu, cuda, cuda:1, ..."""
     # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32
@@ -140,6 +146,9 @@ class TrainConfig:
         if self.reward not in get_args(Reward):
             raise ConfigError("reward", f"unknown reward {self.reward!r}; choose from "
                                         f"{sorted(get_args(Reward))}")
+        if self.pipeline not in get_args(Pipeline):
+            raise ConfigError("pipeline", f"must be one of {sorted(get_args(Pipeline))}, "
+                                          f"got {self.pipeline!r}")
         if self.precision not in get_args(Precision):
             raise ConfigError("precision", f"must be one of {sorted(get_args(Precision))}, "
                                            f"got {self.precision!r}")

@@ -37,11 +37,12 @@ Two loops over the same bookkeeping:
   one env a resumed run continues exactly as an uninterrupted one.
 - parallel (the default): the envs run in a collector process while this process
   updates (``policy.training.collector``); updates per env step stay 1 on average, the collector
-  at most ``max_lead`` steps ahead; with ``pipeline`` (the default) a second learner
-  thread computes the next mini-batch's TD target meanwhile
-  (``policy.algorithms.pipeline``). The same episode seeds, network initialisation and
-  random-action phase as ``sync``; *not* reproducible: which actor version chose each
-  action after the random phase depends on timing, and so does everything after it.
+  at most ``max_lead`` steps ahead; ``pipeline`` gives the learner a second thread
+  (``policy.algorithms.pipeline``): for the next TD targets ("target", the default), or
+  for the targets, the delayed actor steps and the soft updates ("actor"). The same
+  episode seeds, network initialisation and random-action phase as ``sync``; *not*
+  reproducible: which actor version chose each action after the random phase depends on
+  timing, and so does everything after it.
 
 Both run with denormals flushed to zero (``policy.algorithms.td3.flush_denormals``: Adam's moments
 of dead units otherwise make every update several times slower) and, with ``precision``
@@ -74,7 +75,7 @@ from tqdm import tqdm
 
 from bus.task import episode_outcome
 from policy.algorithms.agents import make_agent, make_goal_reward
-from policy.algorithms.pipeline import TargetPipeline
+from policy.algorithms.pipeline import SplitLearner, TargetPipeline
 from policy.algorithms.replay import ReplayBuffer
 from policy.algorithms.rewards import RewardConfig
 from policy.algorithms.td3 import best_precision, flush_denormals
@@ -148,12 +149,13 @@ class Trainer:
             action_dim = probe.action_space.shape[0]
             self.max_action = float(probe.action_space.high[0])
             abr = {}
-        self.agent = make_agent(config.algo, seed=config.seed, device=config.device,
-                                state_dim=int(np.prod(shape)), action_dim=action_dim,
-                                max_action=self.max_action,
-                                precision=resolve_precision(config.precision, config.device))
-        if not config.env:
-            self.agent.task = probe.task.to_dict()  # recorded in the actor files
+        self._make_agent = partial(make_agent, config.algo, seed=config.seed,
+                                   device=config.device, state_dim=int(np.prod(shape)),
+                                   action_dim=action_dim, max_action=self.max_action)
+        self.agent = self._make_agent(
+            precision=resolve_precision(config.precision, config.device))
+        self._task = None if config.env else probe.task.to_dict()
+        self.agent.task = self._task  # recorded in the actor files
         self._first_env = probe
         self.buffer = ReplayBuffer(config.buffer_size, shape, action_dim, seed=config.seed)
         self.goal_reward = make_goal_reward(config.reward, RewardConfig(), seed=config.seed,
@@ -166,7 +168,8 @@ class Trainer:
         self.outcomes: deque[str] = deque(maxlen=WINDOW)
         self.losses: dict[str, float] = {}
         self._open: dict[int, dict] = {}  # stream -> the episode in progress's sums
-        self._pipeline: TargetPipeline | None = None  # parallel mode's second thread
+        # the parallel mode's second learner thread (config.pipeline)
+        self._pipeline: TargetPipeline | SplitLearner | None = None
 
     # -- checkpoints ---------------------------------------------------------------
 
@@ -206,6 +209,13 @@ class Trainer:
             if saved.get(key, "") != getattr(self.config, key):
                 raise ValueError(f"{path}: checkpoint has {key}={saved.get(key, '')!r} but "
                                  f"this run asks for {getattr(self.config, key)!r}")
+        kept = state["agent"]["config"].get("precision", "fp32")
+        if kept != self.agent.config.precision:  # a run keeps the arithmetic it began with
+            if self.config.precision != "auto":
+                raise ValueError(f"{path}: checkpoint was trained with --precision {kept}, "
+                                 f"this run asks for {self.config.precision}")
+            self.agent = self._make_agent(precision=kept)
+            self.agent.task = self._task
         self.agent.load_state_dict(state["agent"])
         self.buffer.load_state_dict(state["buffer"])
         self.goal_reward.load_state_dict(state["goal_reward"])
@@ -318,16 +328,18 @@ class Trainer:
         proc.start()
         send.close()
         delay = a.policy_delay
-        if c.pipeline:
-            self._pipeline = TargetPipeline(self.agent, partial(self.buffer.sample,
-                                                                a.batch_size))
+        sample = partial(self.buffer.sample, a.batch_size)
+        if c.pipeline == "target":
+            self._pipeline = TargetPipeline(self.agent, sample)
+        elif c.pipeline == "actor":  # its worker steps the actor, and publishes it
+            self._pipeline = SplitLearner(self.agent, sample, on_actor=shared.publish)
         try:
             while self.episode < c.episodes:
                 due = self.total_steps - c.start_steps + 1
                 if self.agent.updates < due:
                     self._update()
                     shared.updates.value = self.agent.updates
-                    if self.agent.updates % delay == 0:
+                    if self.agent.updates % delay == 0 and c.pipeline != "actor":
                         shared.publish(self.agent.actor)
                     if not recv.poll():
                         continue
