@@ -1,4 +1,6 @@
-"""TD3's update in two threads: the next mini-batch's TD target while this one learns.
+"""TD3's update in two threads: the next mini-batch's TD target while this one learns
+(``TargetPipeline``, ``--pipeline target``), or the targets, actor steps and soft updates
+beside the critic steps (``SplitLearner``, ``--pipeline actor``).
 
 One update of ``policy.algorithms.td3.TD3`` is three parts in order: the target y of
 eqs. 2.11-2.12 (forward passes of the *target* networks only, about a quarter of the
@@ -20,9 +22,12 @@ single-threaded.
 
 torch releases the GIL inside its kernels, so with one torch thread per Python thread
 (``torch.set_num_threads(1)``) the two run on two cores without OpenMP barriers between
-them, which is what makes this pay beside a collector process on a 2-core machine
-(``benchmarks/RESULTS.md``, issue 9). Not bit-reproducible (the parallel training mode
-is not either); ``--sync`` never uses it.
+them. Beside a collector process on a 2-core machine that gained 10-13% in two
+benchmark runs and lost 17-22% in a third, when the host took part of the CPU
+(``benchmarks/RESULTS.md``, issue 9). Deterministic given the mini-batches (each tensor
+has one writer at a time; tests/test_pipeline.py checks the schedule bit for bit); the
+parallel training mode as a whole is not (the collector's timing); ``--sync`` never
+uses it.
 """
 
 from __future__ import annotations
