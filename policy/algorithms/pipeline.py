@@ -40,7 +40,7 @@ from collections.abc import Callable
 import torch
 
 from policy.algorithms.replay import Batch
-from policy.algorithms.td3 import TD3, LowPrecisionCopy, soft_update
+from policy.algorithms.td3 import TD3, LowPrecisionCopy
 
 __all__ = ["SplitLearner", "TargetPipeline"]
 
@@ -190,21 +190,9 @@ class SplitLearner:
         snapshot's Q_1, then the soft target updates; hands the actor to ``on_actor``."""
         a = self.agent
         if state is not None:
-            self._snap_lp.changed()
-            critic = self._snap_lp.net()
-            action = a.lp["actor"].net()(state)
-            loss = -critic.q1(state, action, detach_params=True).float().mean()
-            a.actor_opt.zero_grad(set_to_none=True)
-            loss.backward()
-            a.lp["actor"].grads_to_master()
-            a.actor_opt.step()
-            a.lp["actor"].changed()
-            self.actor_loss = loss.item()
-        c = a.config
-        soft_update(a._pairs[0][0], a._pairs[0][1], c.tau)  # actor target
-        soft_update(a._pairs[1][0], self._snap, c.tau)  # critic targets from Q after step k
-        a.lp["actor_target"].changed()
-        a.lp["critic_target"].changed()
+            self._snap_lp.changed()  # the snapshot was just written
+            self.actor_loss = a.actor_step(state, self._snap_lp.net())
+        a.update_targets(critic=self._snap)  # the critics' theta: Q after critic step k
         if self.on_actor is not None:
             self.on_actor(a.actor)
 
