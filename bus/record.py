@@ -353,10 +353,14 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
                stop_event: threading.Event | None = None, *, vehicle: str | None = None,
                run_name: str | None = None, compression: str = "zstd",
                queue_size: int = 512, ready: threading.Event | None = None,
-               split_episodes: int = 0, ros_view: bool = True) -> RecordResult:
+               split_episodes: int = 0, ros_view: bool = True,
+               scenario: str | None = None) -> RecordResult:
     """Record until ``stop_event`` is set (or Ctrl-C); return the run directory and
     counters. ``ready`` is set once the subscriber is declared. ``ros_view``: add the
-    log's 3D view (:mod:`bus.ros_view`, geometry from :class:`bus.ros_scene.SitlScene`)."""
+    log's 3D view (:mod:`bus.ros_view`, geometry from :class:`bus.ros_scene.SitlScene`);
+    ``scenario``: the one the run flies, whose world the view's worker builds first (a
+    loaded machine can take longer than a short run to build the default one and then
+    this one: seen in CI, a 3-episode run's log without its world)."""
     stop = stop_event if stop_event is not None else threading.Event()
     session = open_session(session_config)
     try:
@@ -366,7 +370,8 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
         view = None
         if ros_view:
             from bus.ros_scene import SitlScene, WorldWorker
-            view = RosView(SitlScene(), worlds=WorldWorker())
+            view = RosView(SitlScene(),
+                           worlds=WorldWorker(prebuilt=(scenario,) if scenario else ()))
         recorder = Recorder(session, writer, vehicle, queue_size=queue_size, view=view)
         token = session.liveliness().declare_token(  # what the launcher waits on
             keys.ready_key(vehicle or keys.ANY_VEHICLE, "record"))

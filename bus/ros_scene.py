@@ -102,12 +102,13 @@ class WorldWorker:
     the recorder's stop signals do not end it before the recorder is done with it;
     :meth:`close` does (and the end of the recorder: its input ends)."""
 
-    def __init__(self, max_terrain_triangles: int = 4000) -> None:
+    def __init__(self, max_terrain_triangles: int = 4000,
+                 prebuilt: Sequence[str] = ()) -> None:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "bus.ros_scene", "--max-terrain-triangles",
-             str(max_terrain_triangles)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            env=env, start_new_session=True)
+             str(max_terrain_triangles), *(["--prebuild", *prebuilt] if prebuilt else [])],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True)
         self._lock = threading.Lock()
         self._pending: dict[str, WorldRequest] = {}
         threading.Thread(target=self._read, name="skyloop-record-worlds", daemon=True).start()
@@ -166,9 +167,10 @@ class WorldWorker:
             self.proc.wait()
 
 
-#: Built by the worker as soon as it starts, before any request: ``skyloop up``'s
-#: default scenario, so that its markers are ready at the first START (building one
-#: also warms the imports and numba kernels every other world needs).
+#: Built by the worker as soon as it starts, before any request, unless it is given the
+#: scenario(s) to expect (``skyloop record --scenario``, which ``skyloop up`` passes):
+#: ``skyloop up``'s default scenario, so that its markers are ready at the first START
+#: (building one also warms the imports and numba kernels every other world needs).
 PREBUILT = ("valley",)
 
 
@@ -186,9 +188,15 @@ def serve(stdin: IO[bytes], stdout: IO[bytes], scene: Any,
             built[name] = encode(world_markers(scene.world(name)))
         return built[name]
 
+    from sitl.families import WorldSource
+
     for name in prebuilt:
         try:
-            build(name)
+            source = WorldSource.parse(name)
+            if source.fixed:
+                build(name)
+            else:  # a family or a mixture draws its worlds: its template warms the kernels
+                scene.world(source.template())
         except Exception:  # noqa: BLE001 - a request for it reports the failure
             log.exception("world worker: building %s failed", name)
     for line in stdin:
@@ -209,11 +217,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 description="Build world markers for a recorder (stdin: "
                                             "scenario names; stdout: framed CDR).")
     p.add_argument("--max-terrain-triangles", type=int, default=4000)
+    p.add_argument("--prebuild", nargs="+", default=list(PREBUILT), metavar="SCENARIO",
+                   help="build these before the first request (default: %(default)s)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
-        serve(sys.stdin.buffer, sys.stdout.buffer, SitlScene(args.max_terrain_triangles))
+        serve(sys.stdin.buffer, sys.stdout.buffer, SitlScene(args.max_terrain_triangles),
+              args.prebuild)
     except (KeyboardInterrupt, BrokenPipeError):
         pass
     return 0

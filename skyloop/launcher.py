@@ -387,7 +387,7 @@ def run_up(args: UpCommand) -> int:
             graph.start("record", ["record", "--out", str(args.log_dir), "--vehicle",
                                    args.vehicle, "--split-episodes",
                                    str(args.log_split_episodes), "--compression",
-                                   args.log_compression])
+                                   args.log_compression, "--scenario", args.scenario])
         if args.viz:
             graph.start("viz", nodes["viz"])
         for name in ("perception", "bridge"):

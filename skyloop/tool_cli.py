@@ -103,16 +103,22 @@ class ViewCommand(ViewFlags):
 
 
 @dataclass(kw_only=True)
-class VizCommand(ViewFlags, BusFlags):
-    """``skyloop viz``: the live view node of one vehicle."""
+class WorldFirstFlag:
+    """The scenario of the run, for a node that draws its world (``viz``, ``record``)."""
 
     scenario: Annotated[str | None, tyro.conf.arg(
-        help_behavior_hint="(default: the first episode's)")] = None
-    """build this scenario's world before declaring ready (skyloop up passes its own)"""
+        metavar="NAME", help_behavior_hint="(default: the first episode's)")] = None
+    """build this scenario's world ahead of the first episode (skyloop up passes its
+    own; a short run on a loaded machine can end before a world built at its start)"""
 
 
 @dataclass(kw_only=True)
-class RecordCommand(ZenohFlags):
+class VizCommand(WorldFirstFlag, ViewFlags, BusFlags):
+    """``skyloop viz``: the live view node of one vehicle."""
+
+
+@dataclass(kw_only=True)
+class RecordCommand(WorldFirstFlag, ZenohFlags):
     """``skyloop record``: the recorder (``bus.record.run_record``)."""
 
     out: Annotated[Path, tyro.conf.arg(metavar="DIR")] = Path("logs")
@@ -136,7 +142,6 @@ class RecordCommand(ZenohFlags):
         "Foxglove and RViz"))] = False
     queue: Annotated[int, tyro.conf.arg(metavar="N")] = 512
     """messages buffered between Zenoh and the writer"""
-
     def validate(self) -> None:
         super().validate()
         at_least(self, "split_episodes", 0)
@@ -319,7 +324,8 @@ def run_record(args: RecordCommand) -> int:
     stop = stop_flag_on_signals()
     result = record(args.out, cfg, stop, vehicle=args.vehicle, run_name=args.run_name,
                     compression=args.compression, queue_size=args.queue,
-                    split_episodes=args.split_episodes, ros_view=not args.no_ros_view)
+                    split_episodes=args.split_episodes, ros_view=not args.no_ros_view,
+                    scenario=args.scenario)
     c = result.counters
     print(f"recorded {c['written']} messages ({c['episodes_ended']} episodes ended) into "
           f"{result.path}; dropped {c['dropped']}, undecodable {c['undecodable']}, "

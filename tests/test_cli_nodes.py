@@ -48,7 +48,7 @@ FLAGS = {
     "bench": ["--quick", "--json", "--only", "--minutes"],
     "view": ["--vehicle", "--viz", "--scan-every", "--web-port", "--grpc-port"],
     "viz": [*BUS, "--scenario", "--viz", "--scan-every", "--web-port", "--grpc-port"],
-    "record": ["--out", "--vehicle", "--run-name", "--compression", "--split-episodes",
+    "record": ["--scenario", "--out", "--vehicle", "--run-name", "--compression", "--split-episodes",
                "--no-ros-view", "--queue", "--mode", "--connect", "--listen", "--zenoh-config",
                "-v", "--verbose"],
     "router": ["--listen", "--zenoh-config"],

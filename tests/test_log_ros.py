@@ -322,6 +322,35 @@ def test_world_worker_builds_worlds_in_a_process_of_its_own():
     assert worker.proc.poll() is not None
 
 
+def test_world_worker_builds_the_run_scenario_first_and_once():
+    """``skyloop record --scenario`` (which ``skyloop up`` passes): the worker builds
+    that world before any request, not the default valley (a short run on a loaded
+    machine ended before both were built: its log had no world); the request is then
+    answered from what was built. A family is not built (its worlds are drawn): its
+    template is, to warm the kernels. A scenario that fails is answered with its error."""
+    import io
+
+    from bus.ros_scene import PREBUILT, SitlScene, serve
+
+    class Counting(SitlScene):
+        def __init__(self) -> None:
+            super().__init__()
+            self.built: list[str] = []
+
+        def world(self, scenario: str):  # noqa: ANN201 - the real world, counted
+            self.built.append(scenario)
+            return super().world(scenario)
+
+    scene, out = Counting(), io.BytesIO()
+    serve(io.BytesIO(b"dynamic\n"), out, scene, prebuilt=("dynamic",))
+    assert scene.built == ["dynamic"] and PREBUILT == ("valley",)
+    assert out.getvalue()[0] == 0 and b"dynamic" in out.getvalue()[:20]
+    scene, out = Counting(), io.BytesIO()
+    serve(io.BytesIO(b"nope\n"), out, scene, prebuilt=("family:city", "nope"))
+    assert scene.built[0] == "city"  # the template, not "family:city"
+    assert out.getvalue()[0] == 1 and b"nope" in out.getvalue()
+
+
 # ------------------------------------------------------------------ a real run
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
