@@ -1,14 +1,12 @@
 """Training throughput: env steps per second of whole TD3+ABR training runs on the valley.
 
-Eight rows in the same run, the same env, network sizes (400-300), batch (100) and one
+Six rows in the same run, the same env, network sizes (400-300), batch (100) and one
 gradient step per env step after the same warm-up:
 
 - ``train_env_steps_per_s``: ``skyloop train`` as it runs by default (a collector process
   beside the learner, ``policy.training.collector``);
-- ``train_no_pipeline_env_steps_per_s``, ``train_pipeline_target_env_steps_per_s``,
-  ``train_pipeline_actor_env_steps_per_s``: the same with ``--pipeline off`` (one
-  learner thread), ``target`` (a second thread for the TD targets) and ``actor`` (a
-  second thread for the targets, the actor steps and the soft updates;
+- ``train_no_pipeline_env_steps_per_s``: the same with ``--pipeline off`` (one learner
+  thread; the default, ``target``, has a second for the TD targets,
   ``policy.algorithms.pipeline``);
 - ``train_fp32_env_steps_per_s``: the default with ``--precision fp32`` (the default is
   "auto": bfloat16 matmuls where the CPU has bfloat16 units; ``precision`` says which it
@@ -137,7 +135,6 @@ def _collector(n_envs: int, steps: int) -> float:
 def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     steps, repeats = (600, 1) if quick else (3000, 3)
     rows: dict[str, list[float]] = {"parallel": [], "parallel_no_pipeline": [],
-                                    "parallel_target": [], "parallel_actor": [],
                                     "parallel_fp32": [], "sync": [], "sync_fp32": [],
                                     "sb3": []}
     torch.set_num_threads(1)
@@ -145,10 +142,6 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
         rows["parallel"].append(_ours(False, steps, threads, seed=r))
         rows["parallel_no_pipeline"].append(_ours(False, steps, threads, seed=r,
                                                   pipeline="off"))
-        rows["parallel_target"].append(_ours(False, steps, threads, seed=r,
-                                             pipeline="target"))
-        rows["parallel_actor"].append(_ours(False, steps, threads, seed=r,
-                                            pipeline="actor"))
         rows["parallel_fp32"].append(_ours(False, steps, threads, seed=r, precision="fp32"))
         rows["sync"].append(_ours(True, steps, 1, seed=r))
         rows["sync_fp32"].append(_ours(True, steps, 1, seed=r, precision="fp32"))
@@ -159,8 +152,6 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     out: dict[str, Any] = {
         "train_env_steps_per_s": med["parallel"],
         "train_no_pipeline_env_steps_per_s": med["parallel_no_pipeline"],
-        "train_pipeline_target_env_steps_per_s": med["parallel_target"],
-        "train_pipeline_actor_env_steps_per_s": med["parallel_actor"],
         "train_fp32_env_steps_per_s": med["parallel_fp32"],
         "train_sync_env_steps_per_s": med["sync"],
         "train_sync_fp32_env_steps_per_s": med["sync_fp32"],

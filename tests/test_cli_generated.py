@@ -115,7 +115,8 @@ def test_a_command_line_gives_the_config_it_says():
 
 BAD = [(name, str(least - 1)) for name, least in TrainConfig.AT_LEAST.items()] + [
     ("episodes", "x"), ("envs", "2.5"), ("goal_return", "abc"), ("algo", "ppo"),
-    ("reward", "xyz"), ("precision", "fp16"), ("updates", "0")]
+    ("reward", "xyz"), ("precision", "fp16"), ("pipeline", "actor"),
+    ("updates", "0")]
 
 
 @pytest.mark.parametrize("name, value", BAD)

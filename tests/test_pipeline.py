@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from policy.algorithms.ddpg import DDPG, DDPGConfig
-from policy.algorithms.pipeline import SplitLearner, TargetPipeline
+from policy.algorithms.pipeline import TargetPipeline
 from policy.algorithms.replay import Batch
 from policy.algorithms.td3 import TD3, TD3Config
 
@@ -106,56 +106,3 @@ def test_settle_keeps_the_next_target_and_the_state_readable():
                 a.state_dict()
     for x, y in zip(_params(a), _params(b), strict=True):
         assert torch.equal(x, y)
-
-
-def _reference_ahead(agent: TD3, batches: list[Batch], n: int, ahead: int) -> None:
-    """``TD3.update`` with each target computed ``ahead`` mini-batches early: what
-    ``SplitLearner`` must equal (its jobs run in order, each seeing what it would see
-    run at once)."""
-    from collections import deque
-
-    it = iter(batches)
-    queued: deque = deque()
-    for _ in range(n):
-        while len(queued) < ahead:
-            b = next(it)
-            queued.append((b, agent.target(b.next_state, b.reward, b.done)))
-        b, y = queued.popleft()
-        agent.learn(b, y)
-        if agent.delayed_step():
-            agent.update_targets()
-
-
-@pytest.mark.parametrize(("cls", "cfg_cls"), [(TD3, TD3Config), (DDPG, DDPGConfig)])
-def test_the_split_learner_is_the_update_with_targets_ahead_bit_for_bit(cls, cfg_cls):
-    n = 14
-    batches = _batches(n + SplitLearner.AHEAD)
-    split, ref = cls(cfg_cls(**TINY)), cls(cfg_cls(**TINY))
-    published: list[torch.Tensor] = []
-    it = iter(batches)
-    with SplitLearner(split, lambda: next(it), on_actor=lambda actor: published.append(
-            torch.nn.utils.parameters_to_vector(actor.parameters()).clone())) as learner:
-        losses = [learner.update() for _ in range(n)]
-        learner.settle()
-    _reference_ahead(ref, batches, n, SplitLearner.AHEAD)
-    assert split.updates == ref.updates == n
-    for a, b in zip(_params(split), _params(ref), strict=True):
-        assert torch.equal(a, b)
-    delayed = n // split.config.policy_delay
-    assert len(published) == delayed  # the collector gets every new actor
-    assert torch.equal(published[-1], torch.nn.utils.parameters_to_vector(
-        ref.actor.parameters()))
-    assert "actor_loss" in losses[-1]
-
-
-def test_the_split_learner_raises_a_worker_error_in_the_caller():
-    agent = TD3(TD3Config(**TINY))
-    good = _batches(6)
-    bad = _batches(1, state_dim=5)[0]
-    it = iter([good[0], bad, *good[1:]])
-    learner = SplitLearner(agent, lambda: next(it))
-    learner.update()  # on good[0]; the worker fails on bad's target meanwhile
-    with pytest.raises(RuntimeError, match="shapes cannot be multiplied"):
-        learner.update()
-    learner.close()
-    assert not any(t.name == "skyloop-actor-target" for t in threading.enumerate())

@@ -147,7 +147,7 @@ def _state(pid: int) -> str:
         return "Z"
 
 
-@pytest.mark.parametrize("pipeline", ["target", "actor", "off"])
+@pytest.mark.parametrize("pipeline", ["target", "off"])
 def test_parallel_mode_keeps_one_update_per_env_step(tmp_path, pipeline):
     """Collector process and learner (in each of its thread layouts): every episode is
     recorded once, in order, and the learner's updates trail the env steps by at most the
@@ -249,6 +249,8 @@ def test_bad_input_is_a_clear_error_and_overwrites_nothing(tmp_path):
         TrainConfig(envs=0).validate()
     with pytest.raises(ValueError, match="--precision"):
         TrainConfig(precision="fp16").validate()
+    with pytest.raises(ValueError, match=r"--pipeline: must be one of \['off', 'target'\]"):
+        TrainConfig(pipeline="actor").validate()  # a grid file of before it was removed
     with pytest.raises(ValueError, match="--device 'cuda:7'"):
         TrainConfig(device="cuda:7").validate()
 

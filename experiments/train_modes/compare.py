@@ -1,7 +1,6 @@
 """Sample efficiency of the training loops: ``sync`` against the parallel mode, with one
 learner thread (``parallel``) and with two (``pipeline``, the default since 8ba4645;
-``pipeline_bf16`` with bfloat16 matmuls; ``pipeline_actor`` with the actor steps in the
-second thread).
+``pipeline_bf16`` with bfloat16 matmuls).
 
 Reads the grids of this folder (one directory per ``MODES`` entry, each run with
 ``skyloop experiment run experiments/train_modes/<mode>.toml --out .../<mode>``) and
@@ -26,11 +25,10 @@ import numpy as np  # noqa: E402
 from skyloop.experiment.report import read_episodes, t_interval  # noqa: E402
 
 HERE = Path(__file__).parent
-MODES = ("sync", "parallel", "pipeline", "pipeline_bf16", "pipeline_actor")
+MODES = ("sync", "parallel", "pipeline", "pipeline_bf16")
 LABELS = {"sync": "sync", "parallel": "parallel, 1 learner thread",
           "pipeline": "parallel, 2 learner threads (default)",
-          "pipeline_bf16": "the same, --precision bf16",
-          "pipeline_actor": "--pipeline actor (auto precision)"}
+          "pipeline_bf16": "the same, --precision bf16"}
 AT = (100, 200, 300, 400)
 
 

@@ -323,18 +323,15 @@ class TD3:
         per_q = (q - y.unsqueeze(0)).pow(2).mean(dim=(1, 2))  # eq. 2.13, one MSE per critic
         return per_q.sum(), q.detach()
 
-    def _actor_loss(self, state: torch.Tensor, critic: Critic | None = None) -> torch.Tensor:
+    def _actor_loss(self, state: torch.Tensor) -> torch.Tensor:
         # deterministic policy gradient through Q_1 only; critic weights get no gradient.
-        # ``critic``: the (compute copy of the) critic to use, default the agent's own
         action = self.lp["actor"].net()(state)
-        critic = critic if critic is not None else self.lp["critic"].net()
-        return -critic.q1(state, action, detach_params=True).float().mean()
+        return -self.lp["critic"].net().q1(state, action, detach_params=True).float().mean()
 
-    def actor_step(self, state: torch.Tensor, critic: Critic | None = None) -> float:
-        """One actor step on the deterministic policy gradient through Q_1 of ``critic``
-        (default the agent's; ``policy.algorithms.pipeline.SplitLearner`` passes a copy);
-        returns the loss."""
-        actor_loss = self._actor_loss(state, critic)
+    def actor_step(self, state: torch.Tensor) -> float:
+        """One actor step on the deterministic policy gradient through Q_1; returns the
+        loss."""
+        actor_loss = self._actor_loss(state)
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         self.lp["actor"].grads_to_master()
@@ -390,12 +387,10 @@ class TD3:
             out["actor_loss"] = self.actor_step(state)
         return out
 
-    def update_targets(self, critic: list[torch.Tensor] | None = None) -> None:
-        """theta' <- tau theta + (1 - tau) theta' for the actor and both critics; the
-        critics' theta from ``critic`` (parameters of a copy) if given."""
-        (actor_target, actor), (critic_target, own) = self._pairs
-        soft_update(actor_target, actor, self.config.tau)
-        soft_update(critic_target, own if critic is None else critic, self.config.tau)
+    def update_targets(self) -> None:
+        """theta' <- tau theta + (1 - tau) theta' for the actor and both critics."""
+        for target, source in self._pairs:
+            soft_update(target, source, self.config.tau)
         self.lp["actor_target"].changed()
         self.lp["critic_target"].changed()
 

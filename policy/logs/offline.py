@@ -48,7 +48,6 @@ from bus.messages import (
 )
 from bus.task import TASK
 from policy.algorithms.agents import make_goal_reward
-from policy.algorithms.networks import Critic
 from policy.algorithms.replay import ReplayBuffer
 from policy.algorithms.rewards import RewardConfig
 from policy.algorithms.td3 import TD3, TD3Config, flush_denormals
@@ -195,9 +194,9 @@ class TD3BC(TD3):
         self._bc_action = batch.action
         return super().update(batch)
 
-    def _actor_loss(self, state: torch.Tensor, critic: Critic | None = None) -> torch.Tensor:
+    def _actor_loss(self, state: torch.Tensor) -> torch.Tensor:
         pi = self.actor(state)
-        q = (critic if critic is not None else self.critic).q1(state, pi, detach_params=True)
+        q = self.critic.q1(state, pi, detach_params=True)
         lam = self.alpha / q.abs().mean().detach()  # lambda = alpha / mean|Q|
         return -lam * q.mean() + (pi - self._bc_action).pow(2).mean()
 

@@ -29,9 +29,8 @@ Reward = Literal["tr", "ngr", "egr", "abr"]
 #: "auto" and the keys of policy.algorithms.td3.PRECISIONS
 Precision = Literal["auto", "fp32", "bf16"]
 #: the parallel mode's learner threads (policy.algorithms.pipeline): one; a second for the
-#: TD targets (TargetPipeline); a second for the targets, actor steps and soft updates
-#: (SplitLearner)
-Pipeline = Literal["off", "target", "actor"]
+#: TD targets (TargetPipeline)
+Pipeline = Literal["off", "target"]
 
 #: TD3 updates from logs (``skyloop train --from-logs --updates``;
 #: ``policy.logs.offline.UPDATES``)
@@ -103,9 +102,8 @@ class TrainConfig:
     max_lead: int = 8
     """parallel mode: env steps the collector may run ahead of the updates"""
     pipeline: Pipeline = "target"
-    """parallel mode: a second learner thread for the next TD targets (target), or for the
-    targets, the delayed actor steps and the soft updates (actor); off: one thread
-    (policy.algorithms.pipeline)"""
+    """parallel mode: a second learner thread for the next TD targets (target); off: one
+    thread (policy.algorithms.pipeline)"""
     device: str = "cpu"
     """the learner's device: cpu, cuda, cuda:1, ..."""
     # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32

@@ -37,9 +37,8 @@ Two loops over the same bookkeeping:
   one env a resumed run continues exactly as an uninterrupted one.
 - parallel (the default): the envs run in a collector process while this process
   updates (``policy.training.collector``); updates per env step stay 1 on average, the collector
-  at most ``max_lead`` steps ahead; ``pipeline`` gives the learner a second thread
-  (``policy.algorithms.pipeline``): for the next TD targets ("target", the default), or
-  for the targets, the delayed actor steps and the soft updates ("actor"). The same
+  at most ``max_lead`` steps ahead; ``pipeline`` "target" (the default) gives the
+  learner a second thread for the next TD targets (``policy.algorithms.pipeline``). The same
   episode seeds, network initialisation and random-action phase as ``sync``; *not*
   reproducible: which actor version chose each action after the random phase depends on
   timing, and so does everything after it.
@@ -75,7 +74,7 @@ from tqdm import tqdm
 
 from bus.task import episode_outcome
 from policy.algorithms.agents import make_agent, make_goal_reward
-from policy.algorithms.pipeline import SplitLearner, TargetPipeline
+from policy.algorithms.pipeline import TargetPipeline
 from policy.algorithms.replay import ReplayBuffer
 from policy.algorithms.rewards import RewardConfig
 from policy.algorithms.td3 import best_precision, flush_denormals
@@ -169,7 +168,7 @@ class Trainer:
         self.losses: dict[str, float] = {}
         self._open: dict[int, dict] = {}  # stream -> the episode in progress's sums
         # the parallel mode's second learner thread (config.pipeline)
-        self._pipeline: TargetPipeline | SplitLearner | None = None
+        self._pipeline: TargetPipeline | None = None
 
     # -- checkpoints ---------------------------------------------------------------
 
@@ -331,15 +330,13 @@ class Trainer:
         sample = partial(self.buffer.sample, a.batch_size)
         if c.pipeline == "target":
             self._pipeline = TargetPipeline(self.agent, sample)
-        elif c.pipeline == "actor":  # its worker steps the actor, and publishes it
-            self._pipeline = SplitLearner(self.agent, sample, on_actor=shared.publish)
         try:
             while self.episode < c.episodes:
                 due = self.total_steps - c.start_steps + 1
                 if self.agent.updates < due:
                     self._update()
                     shared.updates.value = self.agent.updates
-                    if self.agent.updates % delay == 0 and c.pipeline != "actor":
+                    if self.agent.updates % delay == 0:
                         shared.publish(self.agent.actor)
                     if not recv.poll():
                         continue
