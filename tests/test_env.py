@@ -146,3 +146,19 @@ def test_rgb_array_render():
     assert frame.ndim == 3 and frame.shape[2] == 3 and frame.dtype == np.uint8
     assert frame.std() > 5  # not a blank image
     e.close()
+
+
+def test_the_state_shape_comes_from_the_config_frames_and_radius():
+    """``EnvConfig(frames, ico_radius)``: the space, the state and the icosahedron follow
+    (the task records them); an observation config of another radius is refused."""
+    from perception.observation import ObservationConfig
+
+    env = UavNavEnv(config=EnvConfig(frames=4, ico_radius=3.0))
+    try:
+        assert env.observation_space.shape == (4, 35) and env.task.frames == 4
+        state, _ = env.reset(seed=1)
+        assert state.shape == (4, 35) and env.obs_config.radius == env.task.ico_radius == 3.0
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="ico_radius 3.0"):
+        UavNavEnv(config=EnvConfig(ico_radius=3.0), observation_config=ObservationConfig())

@@ -34,24 +34,28 @@ from policy.algorithms.rewards import RewardConfig, base_reward, collision_rewar
 from sitl.episode import EpisodeConfig, EpisodeSim, body_to_world
 from sitl.render_fast import FastRenderer
 
-OBS_DIM, FRAMES, MAX_ACTION = TASK.obs_dim, TASK.frames, TASK.max_action  # bus.task
+OBS_DIM, MAX_ACTION = TASK.obs_dim, TASK.max_action  # bus.task
 RENDER_BACKENDS = ("fast", "matplotlib")  # render_mode="rgb_array": sitl.render_fast, sitl.render
 
 
 @dataclass
 class EnvConfig:
-    """Episode limits (defaults: the task specification, ``bus.task``) and the scenario."""
+    """Episode limits and the shape of the state (defaults: the task specification,
+    ``bus.task``) and the scenario."""
 
     max_steps: int = TASK.max_steps
     goal_radius: float = TASK.goal_radius
     goal_max_altitude: float = TASK.goal_max_altitude
+    frames: int = TASK.frames  # p_frames: observations stacked into one state
+    ico_radius: float = TASK.ico_radius  # p_radius of the observation's icosahedron, m
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)  # scenario, LiDAR range
 
     @property
     def task(self) -> TaskSpec:
-        """The task specification with this config's limits."""
+        """The task specification with this config's limits and state shape."""
         return replace(TASK, max_steps=self.max_steps, goal_radius=self.goal_radius,
-                       goal_max_altitude=self.goal_max_altitude)
+                       goal_max_altitude=self.goal_max_altitude, frames=self.frames,
+                       ico_radius=self.ico_radius)
 
 
 __all__ = ["EnvConfig", "UavNavEnv", "body_to_world"]
@@ -78,7 +82,11 @@ class UavNavEnv(gymnasium.Env):
             episode=EpisodeConfig(scenario=scenario, lidar_max_range=lidar_max_range,
                                   world_every=world_every))
         self.reward_config = reward_config or RewardConfig()
-        self.obs_config = observation_config or ObservationConfig()
+        self.task = self.config.task
+        self.obs_config = observation_config or ObservationConfig(radius=self.task.ico_radius)
+        if self.obs_config.radius != self.task.ico_radius:
+            raise ValueError(f"observation_config.radius {self.obs_config.radius} differs "
+                             f"from the task's ico_radius {self.task.ico_radius}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', not {render_mode!r}")
         self.render_mode = render_mode
@@ -90,11 +98,10 @@ class UavNavEnv(gymnasium.Env):
         self.sim = EpisodeSim(self.config.episode)
         self.world, self.vehicle, self.lidar = self.sim.world, self.sim.vehicle, self.sim.lidar
         self.ico = TruncatedIcosahedron(self.obs_config.radius)
-        self.task = self.config.task
-        self.stacker = FrameStacker(FRAMES, OBS_DIM)
+        self.stacker = FrameStacker(self.task.frames, OBS_DIM)
         self.action_space = spaces.Box(-MAX_ACTION, MAX_ACTION, (TASK.action_dim,), np.float32)
         # Scaled attributes: faces in [0, 2], altitude z/10 (|z| <= 100 m), h and g in [0, 2).
-        self.observation_space = spaces.Box(-10.0, 10.0, (FRAMES, OBS_DIM), np.float32)
+        self.observation_space = spaces.Box(-10.0, 10.0, self.task.state_shape, np.float32)
         self._seed = seed
         self._faces = np.zeros(32, np.float32)
         self._points = np.zeros((0, 3), np.float32)

@@ -21,12 +21,13 @@ from tqdm import tqdm
 from bus.task import TASK, TaskSpec
 from policy.algorithms.scripted import StraightLineController
 from policy.algorithms.td3 import load_actor
-from policy.training.env import UavNavEnv
+from policy.training.env import EnvConfig, UavNavEnv
 from policy.training.rollout import run_episode, summarize
 from policy.training.settings import (  # noqa: F401 - re-exported: EvalConfig lives in the
     EVAL_SEED,  # light settings module, so `skyloop eval --help` needs no torch
     EvalConfig,
 )
+from sitl.episode import EpisodeConfig
 
 SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "shipped" / "td3_abr_valley" / "actor.pt"
 
@@ -65,7 +66,7 @@ class ActorController:
         self.trained_task: TaskSpec = self.actor.trained_task or TASK
         shipped = path.resolve() == SHIPPED_POLICY
         self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
-        inputs = self.actor.net[0].in_features
+        self.inputs = inputs = self.actor.net[0].in_features
         outputs = self.actor.net[-2].out_features
         if task is not None and (inputs, outputs) != (task.state_dim, task.action_dim):
             raise ValueError(f"{path}: an actor for {inputs} inputs and {outputs} actions; "
@@ -81,11 +82,12 @@ class ActorController:
         return self.actor(x)[0].numpy()
 
 
-def make_controller(policy: str | None):
-    """``None`` -> the shipped policy; ``"scripted"`` -> the straight-line baseline."""
+def make_controller(policy: str | None, task: TaskSpec | None = TASK):
+    """``None`` -> the shipped policy; ``"scripted"`` -> the straight-line baseline.
+    ``task``: the task the actor must fly (None: the one it was trained for)."""
     if policy == "scripted":
         return StraightLineController()
-    return ActorController(policy or SHIPPED_POLICY)
+    return ActorController(policy or SHIPPED_POLICY, task=task)
 
 
 def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_SEED,
@@ -105,8 +107,20 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
                          f"--worlds N")
     names = eval_worlds(source.families[0], worlds, validation=validation) if worlds else []
     torch.set_num_threads(1)
-    controller = make_controller(policy)
-    env = UavNavEnv(scenario=names[0] if names else scenario)
+    controller = make_controller(policy, task=None)
+    # the state as the actor was trained to read it (its recorded frames and icosahedron
+    # radius; the scripted controller and actors that record none: the default task's)
+    trained = getattr(controller, "trained_task", None) or TASK
+    # (the faces see only points within the radius: any LiDAR range at least it gives the
+    # same observation)
+    lidar = max(EpisodeConfig.lidar_max_range, trained.ico_radius)
+    env = UavNavEnv(config=EnvConfig(
+        frames=trained.frames, ico_radius=trained.ico_radius,
+        episode=EpisodeConfig(scenario=names[0] if names else scenario, lidar_max_range=lidar)))
+    inputs = getattr(controller, "inputs", None)
+    if inputs is not None and inputs != trained.state_dim:
+        raise ValueError(f"{policy}: an actor for {inputs} inputs, but it records a task "
+                         f"of {trained.state_dim} ({trained.frames} frames)")
     results = []
     for i in tqdm(range(episodes), total=episodes, unit="ep", disable=not progress,
                   desc=f"eval {scenario}"):
@@ -115,7 +129,8 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
         results.append(run_episode(env, controller, seed + i))
     env.close()
     summary = summarize(results)
-    summary.update(policy=controller.name, scenario=scenario, seed=seed)
+    summary.update(policy=controller.name, scenario=scenario, seed=seed,
+                   task={"frames": trained.frames, "ico_radius": trained.ico_radius})
     if names:
         summary.update(worlds=len(names), world_seeds=[int(n.rpartition("#")[2])
                                                        for n in (names[0], names[-1])],

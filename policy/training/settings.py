@@ -18,6 +18,8 @@ from typing import Annotated, ClassVar, Literal, get_args
 
 import tyro
 
+from bus.task import TASK
+
 __all__ = ["EVAL_SEED", "OFFLINE_UPDATES", "Algo", "ConfigError", "EvalConfig", "Pipeline",
            "Precision",
            "Reward", "TrainConfig", "check_at_least"]
@@ -92,7 +94,13 @@ class TrainConfig:
     """keep the actor every N episodes as OUT/snapshots/actor-ep<N>.pt, to pick one by
     validation worlds afterwards (0: only the last, OUT/actor.pt)"""
     lidar_max_range: float = 4.5
-    """the simulated LiDAR's range, m (the observation needs points within 4 m)"""
+    """the simulated LiDAR's range, m (the observation needs points within --ico-radius)"""
+    # the state's shape (bus.task: recorded in the actor; the stack flies it only with
+    # SKY_ICO_RADIUS at the same value and the same number of frames)
+    ico_radius: float = TASK.ico_radius
+    """p_radius of the observation's truncated icosahedron, m (eq. 3.1; SKY_ICO_RADIUS)"""
+    frames: int = TASK.frames
+    """p_frames: observations stacked into one state (and ABR's group length)"""
     threads: int = 1
     """the learner's torch threads"""
     sync: bool = False
@@ -127,7 +135,7 @@ class TrainConfig:
     AT_LEAST: ClassVar[dict[str, int]] = {
         "episodes": 1, "start_steps": 0, "buffer_size": 1, "checkpoint_every": 1,
         "threads": 1, "envs": 1, "max_lead": 1, "world_every": 1,
-        "snapshot_every": 0}
+        "snapshot_every": 0, "frames": 2}  # frames: ABR's feature CNN convolves 2
 
     def __post_init__(self) -> None:
         self.check()
@@ -150,6 +158,12 @@ class TrainConfig:
         if self.precision not in get_args(Precision):
             raise ConfigError("precision", f"must be one of {sorted(get_args(Precision))}, "
                                            f"got {self.precision!r}")
+        if not 0.5 <= self.ico_radius <= 50.0:  # SKY_ICO_RADIUS's range (bus.params)
+            raise ConfigError("ico_radius", f"must be in [0.5, 50] m, got {self.ico_radius}")
+        if self.ico_radius > self.lidar_max_range and not self.env:
+            raise ConfigError("ico_radius", f"{self.ico_radius} m is beyond the LiDAR's range "
+                                            f"(--lidar-max-range {self.lidar_max_range}): the "
+                                            f"faces would never see that far")
 
     def validate(self) -> None:
         """``check``, then what costs more: the device, the scenario or env id."""

@@ -72,7 +72,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from bus.task import episode_outcome
+from bus.task import TASK, episode_outcome
 from policy.algorithms.agents import make_agent, make_goal_reward
 from policy.algorithms.pipeline import TargetPipeline
 from policy.algorithms.replay import ReplayBuffer
@@ -85,7 +85,7 @@ from policy.training.collector import (
     Transition,
     collector_main,
 )
-from policy.training.env import UavNavEnv
+from policy.training.env import EnvConfig, UavNavEnv
 from policy.training.plots import CSV_NAME, plot_runs
 from policy.training.settings import (  # noqa: F401 - re-exported: the run's config
     Algo,  # lives in the light settings module, so `skyloop train --help` needs no torch
@@ -93,6 +93,7 @@ from policy.training.settings import (  # noqa: F401 - re-exported: the run's co
     Reward,
     TrainConfig,
 )
+from sitl.episode import EpisodeConfig
 
 CHECKPOINT = "checkpoint.pt"
 RESULT = "result.json"  # written last: the run is finished
@@ -125,9 +126,12 @@ def make_envs(config: dict, n: int) -> list:
         from policy.training.gym_task import GymTask
 
         return [GymTask(config["env"], config["goal_return"]) for _ in range(n)]
-    return [UavNavEnv(scenario=config["scenario"], lidar_max_range=config["lidar_max_range"],
-                      world_every=config.get("world_every", 1))
-            for _ in range(n)]
+    env = EnvConfig(frames=config.get("frames", TASK.frames),
+                    ico_radius=config.get("ico_radius", TASK.ico_radius),
+                    episode=EpisodeConfig(scenario=config["scenario"],
+                                          lidar_max_range=config["lidar_max_range"],
+                                          world_every=config.get("world_every", 1)))
+    return [UavNavEnv(config=env) for _ in range(n)]
 
 
 class Trainer:
@@ -142,12 +146,11 @@ class Trainer:
         if config.env:
             shape, action_dim, self.max_action = probe.state_shape, probe.action_dim, \
                 probe.max_action
-            abr = {"p_frames": shape[0], "p_attributes": shape[1]}
         else:  # sizes from the env's spaces (the task specification, bus.task)
             shape = probe.observation_space.shape
             action_dim = probe.action_space.shape[0]
             self.max_action = float(probe.action_space.high[0])
-            abr = {}
+        abr = {"p_frames": shape[0], "p_attributes": shape[1]}  # ABR groups p_frames steps
         self._make_agent = partial(make_agent, config.algo, seed=config.seed,
                                    device=config.device, state_dim=int(np.prod(shape)),
                                    action_dim=action_dim, max_action=self.max_action)

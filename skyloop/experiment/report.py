@@ -352,17 +352,17 @@ def load_trial(trial: Trial, grid_dir: Path) -> TrialData:
 # -- evaluation -----------------------------------------------------------------------------
 
 def _evaluate_scenario(actor: Path, config: TrainConfig, episodes: int) -> dict:
-    """``policy.training.evaluate.evaluate`` with the trial's LiDAR range (evaluate() builds the env
-    with the default range)."""
+    """``policy.training.evaluate.evaluate`` in the trial's own env (its LiDAR range, frames
+    and icosahedron radius: ``policy.training.train.make_envs``)."""
     import torch
 
-    from policy.training.env import UavNavEnv
     from policy.training.evaluate import EVAL_SEED, ActorController
     from policy.training.rollout import run_episodes
+    from policy.training.train import make_envs
 
     torch.set_num_threads(1)
-    controller = ActorController(actor)
-    env = UavNavEnv(scenario=config.scenario, lidar_max_range=config.lidar_max_range)
+    controller = ActorController(actor, task=None)  # the trial's task, not the default's
+    env = make_envs(asdict(config), 1)[0]
     try:
         results = list(run_episodes(env, controller, episodes, EVAL_SEED))
     finally:
