@@ -322,7 +322,7 @@ def test_frames_and_radius_shape_the_state_and_travel_with_the_actor(tmp_path):
     flies it in the state it was trained on (not the default's)."""
     from bus.task import TASK
     from policy.algorithms.td3 import load_actor
-    from policy.training.evaluate import evaluate
+    from policy.training.evaluate import evaluate, format_summary
 
     trainer = Trainer(TrainConfig(episodes=2, frames=2, ico_radius=3.0, **SMALL), tmp_path)
     trainer.run()
@@ -335,6 +335,7 @@ def test_frames_and_radius_shape_the_state_and_travel_with_the_actor(tmp_path):
         load_actor(tmp_path / "actor.pt", task=TASK)
     summary = evaluate(str(tmp_path / "actor.pt"), "valley", episodes=2, progress=False)
     assert summary["task"] == {"frames": 2, "ico_radius": 3.0} and summary["episodes"] == 2
+    assert "its state: 2 frames, icosahedron radius 3 m" in format_summary(summary)
 
 
 @pytest.mark.parametrize(("kw", "flag"), [

@@ -145,6 +145,10 @@ def format_summary(s: dict) -> str:
     lo, hi = s["success_ci95"]
     where = (f" ({s['worlds']} {s['world_set']} worlds, seeds {s['world_seeds'][0]}-"
              f"{s['world_seeds'][1]})" if "worlds" in s else "")
+    task = s.get("task", {})
+    if task and (task["frames"], task["ico_radius"]) != (TASK.frames, TASK.ico_radius):
+        where += (f" (its state: {task['frames']} frames, icosahedron radius "
+                  f"{task['ico_radius']:g} m)")
     return (f"{s['policy']} on {s['scenario']}{where}: {s['episodes']} episodes from seed "
             f"{s['seed']}: "
             f"success {s['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%}), "
