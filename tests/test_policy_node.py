@@ -118,6 +118,16 @@ def test_no_flight_under_parameters_the_actor_was_not_trained_for(tmp_path):
         assert node.act(m.observation(obs, 0.3, 0, 3, scaling=other)) is None
         assert node.refusals == 2 and "SKY_ICO_RADIUS" in node.off_task
         wait_for(lambda: said("SKY_ICO_RADIUS=6 m, trained with 4"), 10.0, "the radius")
+
+        # an actor that records how its observations were made (policy.training.evaluate.
+        # ActorController.trained_observation): perception under another face encoding
+        node.trained_observation = ObservationConfig()
+        prox = scaling_fields(ObservationConfig(encoding="proximity"))
+        assert node.act(m.observation(obs, 0.4, 0, 4, scaling=prox)) is None
+        assert set(node.off_task) == {"observation"} and node.refusals == 3
+        wait_for(lambda: said("Policy off: encoding=proximity, trained with"), 10.0,
+                 "the encoding")  # (STATUSTEXT keeps 50 bytes)
+        assert node.act(m.observation(obs, 0.5, 0, 5, scaling=scaling)) is not None
     finally:
         stop.set()
         thread.join(5.0)

@@ -316,30 +316,42 @@ def test_a_run_resumed_with_an_older_csv_keeps_its_columns(tmp_path):
     assert {len(r) for r in rows} == {len(old[0])}
 
 
-def test_frames_and_radius_shape_the_state_and_travel_with_the_actor(tmp_path):
-    """``--frames 2 --ico-radius 3``: the networks read 2 x 35 values, ABR groups 2 steps,
-    the actor file records both, the default task refuses it by name, and ``evaluate``
-    flies it in the state it was trained on (not the default's)."""
+def test_frames_radius_and_encoding_shape_the_state_and_travel_with_the_actor(tmp_path):
+    """``--frames 2 --ico-radius 3 --encoding proximity``: the networks read 2 x 35
+    values, ABR groups 2 steps, the actor file records all three, the default task refuses
+    it by name, ``evaluate`` flies it in the state it was trained on (not the default's),
+    and a resume that asks for another state is refused naming the field."""
     from bus.task import TASK
     from policy.algorithms.td3 import load_actor
     from policy.training.evaluate import evaluate, format_summary
 
-    trainer = Trainer(TrainConfig(episodes=2, frames=2, ico_radius=3.0, **SMALL), tmp_path)
+    trainer = Trainer(TrainConfig(episodes=2, frames=2, ico_radius=3.0, encoding="proximity",
+                                  **SMALL), tmp_path)
     trainer.run()
     assert trainer.agent.actor.net[0].in_features == 2 * TASK.obs_dim
     assert trainer.goal_reward.config.p_frames == 2
     actor = load_actor(tmp_path / "actor.pt")
     assert (actor.trained_task.frames, actor.trained_task.ico_radius) == (2, 3.0)
+    assert actor.trained_observation["encoding"] == "proximity"
+    assert actor.trained_observation["radius"] == 3.0
     with pytest.raises(ValueError, match="trained for task frames=2, but this task has "
                                          "frames=3"):
         load_actor(tmp_path / "actor.pt", task=TASK)
     summary = evaluate(str(tmp_path / "actor.pt"), "valley", episodes=2, progress=False)
-    assert summary["task"] == {"frames": 2, "ico_radius": 3.0} and summary["episodes"] == 2
-    assert "its state: 2 frames, icosahedron radius 3 m" in format_summary(summary)
+    assert summary["task"] == {"frames": 2, "ico_radius": 3.0, "encoding": "proximity"}
+    assert summary["episodes"] == 2
+    assert ("its state: 2 frames, icosahedron radius 3 m, proximity encoding"
+            in format_summary(summary))
+    for other in ({"frames": 3}, {"ico_radius": 4.0}, {"encoding": "distance"}):
+        cfg = TrainConfig(episodes=3, **{**SMALL, "frames": 2, "ico_radius": 3.0,
+                                         "encoding": "proximity", **other})
+        with pytest.raises(ValueError, match=f"checkpoint has {next(iter(other))}="):
+            Trainer(cfg, tmp_path).run(resume=True)
 
 
 @pytest.mark.parametrize(("kw", "flag"), [
     ({"frames": 1}, "--frames"), ({"ico_radius": 0.2}, "--ico-radius"),
+    ({"encoding": "binary"}, "--encoding: must be one of"),
     ({"ico_radius": float("nan")}, "--ico-radius"),
     ({"ico_radius": 6.0}, "--ico-radius: 6.0 m is beyond the LiDAR's range")])
 def test_a_state_shape_the_task_cannot_have_is_refused_naming_the_flag(kw, flag):

@@ -270,9 +270,11 @@ class TD3:
         self.noise_gen = torch.Generator().manual_seed(c.seed + 1)  # target smoothing
         self.rng = np.random.default_rng(c.seed + 2)  # exploration noise, random actions
         self.updates = 0
-        # the skyloop task this agent learns (bus.task.TaskSpec.to_dict()), recorded in
-        # its actor files; None for other tasks (Gymnasium env ids)
+        # the skyloop task this agent learns (bus.task.TaskSpec.to_dict()) and how its
+        # observations are made (perception.observation.scaling_fields), recorded in its
+        # actor files; None for other tasks (Gymnasium env ids)
         self.task: dict[str, Any] | None = None
+        self.observation: dict[str, Any] | None = None
 
     # ------------------------------------------------------------------ acting
 
@@ -408,6 +410,8 @@ class TD3:
         }
         if self.task is not None:
             state["task"] = dict(self.task)
+        if self.observation is not None:
+            state["observation"] = dict(self.observation)
         torch.save(state, path)
 
     def state_dict(self) -> dict[str, Any]:
@@ -482,6 +486,9 @@ def load_actor(path: str | Path | BinaryIO, task: TaskSpec | None = None) -> Act
                          f"config names ({detail})") from None
     actor.eval().requires_grad_(False)
     actor.trained_task = trained  # what it was trained under (None: not recorded)
+    # how its observations were made (perception.observation.scaling_fields; None: not
+    # recorded, i.e. the default ObservationConfig at the task's radius)
+    actor.trained_observation = state.get("observation")
     return actor
 
 

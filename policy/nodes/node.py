@@ -62,7 +62,7 @@ from bus.task import TASK, TaskSpec
 from mavlink_bridge.modes import AUTO_LOITER, AUTO_TAKEOFF, OFFBOARD
 from mavlink_bridge.offboard_client import OffboardClient, OffboardClientConfig, OffboardError
 from mavlink_bridge.transport import mavlink
-from perception.observation import FrameStacker
+from perception.observation import FrameStacker, ObservationConfig
 
 log = logging.getLogger("skyloop.policy")
 READY_LINE = "SKYLOOP-POLICY-READY"
@@ -79,11 +79,16 @@ class PolicyNode:
     def __init__(self, bus: Bus, controller: Controller, vehicle: str = "uav1",
                  client_config: OffboardClientConfig | None = None, frames: int = TASK.frames,
                  dim: int = TASK.obs_dim, lockstep: bool = True, weights: Any = None,
-                 hold: bool = False, trained: TaskSpec | None = None) -> None:
+                 hold: bool = False, trained: TaskSpec | None = None,
+                 trained_observation: ObservationConfig | None = None) -> None:
         self.bus, self.controller, self.vehicle = bus, controller, vehicle
         #: the task the controller was trained under (None: it depends on no parameter,
         #: e.g. the scripted controller); default: the controller's ``trained_task``
         self.trained = trained or getattr(controller, "trained_task", None)
+        #: how the observations it was trained on were made (None: not recorded; then
+        #: only SKY_ICO_RADIUS is checked); default: the controller's
+        self.trained_observation = trained_observation or getattr(
+            controller, "trained_observation", None)
         self.weights = weights  # a policy.nodes.weights.WeightsFollower, or None
         self.lockstep = lockstep
         self.stacker = FrameStacker(frames, dim)
@@ -172,12 +177,27 @@ class PolicyNode:
         (``bus.params.off_task``), and resumes when all are back."""
         if self.trained is None:
             return
-        why = params.off_task(self.trained, name, value)
+        self._off(name, params.off_task(self.trained, name, value))
+
+    def check_observation(self, scaling: dict) -> None:
+        """An observation's scaling fields (how perception made it): flying stops while
+        its face encoding, angle centring or scales differ from the trained ones (the
+        radius is SKY_ICO_RADIUS's, checked by ``check_param``)."""
+        t = self.trained_observation
+        if t is None:
+            return
+        diffs = [f"{k}={scaling[k]}, trained with {getattr(t, k)}"
+                 for k in ("encoding", "centre_angles", "altitude_scale", "angle_scale")
+                 if k in scaling and scaling[k] != getattr(t, k)]
+        self._off("observation", "; ".join(diffs) if diffs else None)
+
+    def _off(self, key: str, why: str | None) -> None:
+        """Record (or clear) one reason not to fly; refuse or resume on the change."""
         was = bool(self.off_task)
         if why is not None:
-            self.off_task[name] = why
+            self.off_task[key] = why
         else:
-            self.off_task.pop(name, None)
+            self.off_task.pop(key, None)
         if self.off_task and not was:
             self._refuse()
         elif was and not self.off_task:
@@ -219,6 +239,7 @@ class PolicyNode:
         scaling = m.observation_scaling(msg)
         if scaling is not None:  # the radius perception used for it (SKY_ICO_RADIUS)
             self.check_param("SKY_ICO_RADIUS", scaling["radius"])
+            self.check_observation(scaling)
         if self.off_task:
             return None  # not trained for these parameters: the vehicle holds
         if self.hold and episode <= self.ended:

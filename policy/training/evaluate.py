@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from bus.task import TASK, TaskSpec
+from perception.observation import ObservationConfig, config_from_scaling
 from policy.algorithms.scripted import StraightLineController
 from policy.algorithms.td3 import load_actor
 from policy.training.env import EnvConfig, UavNavEnv
@@ -64,6 +65,15 @@ class ActorController:
                              f"({_torch_error(path, exc)})") from exc
         #: the task it was trained under (files that do not say: the default task's)
         self.trained_task: TaskSpec = self.actor.trained_task or TASK
+        #: how the observations it was trained on were made (files that do not say:
+        #: the default configuration at the task's radius)
+        recorded = self.actor.trained_observation
+        try:
+            self.trained_observation = (config_from_scaling(recorded) if recorded else
+                                        ObservationConfig(radius=self.trained_task.ico_radius))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: its recorded observation {recorded!r} is not one "
+                             f"({exc})") from None
         shipped = path.resolve() == SHIPPED_POLICY
         self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
         self.inputs = inputs = self.actor.net[0].in_features
@@ -111,12 +121,14 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
     # the state as the actor was trained to read it (its recorded frames and icosahedron
     # radius; the scripted controller and actors that record none: the default task's)
     trained = getattr(controller, "trained_task", None) or TASK
+    observation = getattr(controller, "trained_observation", None)
     # (the faces see only points within the radius: any LiDAR range at least it gives the
     # same observation)
     lidar = max(EpisodeConfig.lidar_max_range, trained.ico_radius)
     env = UavNavEnv(config=EnvConfig(
         frames=trained.frames, ico_radius=trained.ico_radius,
-        episode=EpisodeConfig(scenario=names[0] if names else scenario, lidar_max_range=lidar)))
+        episode=EpisodeConfig(scenario=names[0] if names else scenario, lidar_max_range=lidar)),
+        observation_config=observation)
     inputs = getattr(controller, "inputs", None)
     if inputs is not None and inputs != trained.state_dim:
         raise ValueError(f"{policy}: an actor for {inputs} inputs, but it records a task "
@@ -130,7 +142,8 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
     env.close()
     summary = summarize(results)
     summary.update(policy=controller.name, scenario=scenario, seed=seed,
-                   task={"frames": trained.frames, "ico_radius": trained.ico_radius})
+                   task={"frames": trained.frames, "ico_radius": trained.ico_radius,
+                         "encoding": env.obs_config.encoding})
     if names:
         summary.update(worlds=len(names), world_seeds=[int(n.rpartition("#")[2])
                                                        for n in (names[0], names[-1])],
@@ -146,9 +159,10 @@ def format_summary(s: dict) -> str:
     where = (f" ({s['worlds']} {s['world_set']} worlds, seeds {s['world_seeds'][0]}-"
              f"{s['world_seeds'][1]})" if "worlds" in s else "")
     task = s.get("task", {})
-    if task and (task["frames"], task["ico_radius"]) != (TASK.frames, TASK.ico_radius):
+    default = (TASK.frames, TASK.ico_radius, ObservationConfig.encoding)
+    if task and (task["frames"], task["ico_radius"], task.get("encoding")) != default:
         where += (f" (its state: {task['frames']} frames, icosahedron radius "
-                  f"{task['ico_radius']:g} m)")
+                  f"{task['ico_radius']:g} m, {task.get('encoding')} encoding)")
     return (f"{s['policy']} on {s['scenario']}{where}: {s['episodes']} episodes from seed "
             f"{s['seed']}: "
             f"success {s['success_rate']:.1%} (95% CI {lo:.1%}-{hi:.1%}), "

@@ -33,6 +33,8 @@ Precision = Literal["auto", "fp32", "bf16"]
 #: the parallel mode's learner threads (policy.algorithms.pipeline): one; a second for the
 #: TD targets (TargetPipeline)
 Pipeline = Literal["off", "target"]
+#: perception.faces.ENCODINGS
+Encoding = Literal["distance", "proximity"]
 
 #: TD3 updates from logs (``skyloop train --from-logs --updates``;
 #: ``policy.logs.offline.UPDATES``)
@@ -101,6 +103,9 @@ class TrainConfig:
     """p_radius of the observation's truncated icosahedron, m (eq. 3.1; SKY_ICO_RADIUS)"""
     frames: int = TASK.frames
     """p_frames: observations stacked into one state (and ABR's group length)"""
+    encoding: Encoding = "distance"
+    """the face values: distance from the face centre (eq. 3.2, the paper's) or proximity
+    1 - |p| / p_radius (perception/faces.py)"""
     threads: int = 1
     """the learner's torch threads"""
     sync: bool = False
@@ -155,6 +160,9 @@ class TrainConfig:
         if self.pipeline not in get_args(Pipeline):
             raise ConfigError("pipeline", f"must be one of {sorted(get_args(Pipeline))}, "
                                           f"got {self.pipeline!r}")
+        if self.encoding not in get_args(Encoding):
+            raise ConfigError("encoding", f"must be one of {sorted(get_args(Encoding))}, "
+                                          f"got {self.encoding!r}")
         if self.precision not in get_args(Precision):
             raise ConfigError("precision", f"must be one of {sorted(get_args(Precision))}, "
                                            f"got {self.precision!r}")

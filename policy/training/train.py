@@ -73,6 +73,7 @@ import torch
 from tqdm import tqdm
 
 from bus.task import TASK, episode_outcome
+from perception.observation import ObservationConfig, scaling_fields
 from policy.algorithms.agents import make_agent, make_goal_reward
 from policy.algorithms.pipeline import TargetPipeline
 from policy.algorithms.replay import ReplayBuffer
@@ -98,6 +99,8 @@ from sitl.episode import EpisodeConfig
 CHECKPOINT = "checkpoint.pt"
 RESULT = "result.json"  # written last: the run is finished
 ACTOR = "actor.pt"
+#: the state's settings of a checkpoint written before they were options
+RESUME_DEFAULTS = {"frames": TASK.frames, "ico_radius": TASK.ico_radius, "encoding": "distance"}
 SNAPSHOTS = "snapshots"  # --snapshot-every: actor-ep<N>.pt
 REWARD_TERMS = ("progress", "altitude", "heading", "velocity_heading", "collision")
 CSV_FIELDS = ["episode", "return", "steps", "outcome", "success_rate_500",
@@ -131,7 +134,9 @@ def make_envs(config: dict, n: int) -> list:
                     episode=EpisodeConfig(scenario=config["scenario"],
                                           lidar_max_range=config["lidar_max_range"],
                                           world_every=config.get("world_every", 1)))
-    return [UavNavEnv(config=env) for _ in range(n)]
+    observation = ObservationConfig(radius=env.ico_radius,
+                                    encoding=config.get("encoding", "distance"))
+    return [UavNavEnv(config=env, observation_config=observation) for _ in range(n)]
 
 
 class Trainer:
@@ -157,7 +162,9 @@ class Trainer:
         self.agent = self._make_agent(
             precision=resolve_precision(config.precision, config.device))
         self._task = None if config.env else probe.task.to_dict()
+        self._observation = None if config.env else scaling_fields(probe.obs_config)
         self.agent.task = self._task  # recorded in the actor files
+        self.agent.observation = self._observation
         self._first_env = probe
         self.buffer = ReplayBuffer(config.buffer_size, shape, action_dim, seed=config.seed)
         self.goal_reward = make_goal_reward(config.reward, RewardConfig(), seed=config.seed,
@@ -207,9 +214,13 @@ class Trainer:
         if not isinstance(state, dict) or state.get("format") != "skyloop-train-1":
             raise ValueError(f"{path}: not a skyloop training checkpoint")
         saved = state["config"]
-        for key in ("algo", "reward", "scenario", "env", "seed"):
-            if saved.get(key, "") != getattr(self.config, key):
-                raise ValueError(f"{path}: checkpoint has {key}={saved.get(key, '')!r} but "
+        # what the run learns and the state it reads (a checkpoint from before a field
+        # existed: that field's default)
+        for key in ("algo", "reward", "scenario", "env", "seed", "frames", "ico_radius",
+                    "encoding"):
+            had = saved.get(key, RESUME_DEFAULTS.get(key, ""))
+            if had != getattr(self.config, key):
+                raise ValueError(f"{path}: checkpoint has {key}={had!r} but "
                                  f"this run asks for {getattr(self.config, key)!r}")
         kept = state["agent"]["config"].get("precision", "fp32")
         if kept != self.agent.config.precision:  # a run keeps the arithmetic it began with
@@ -217,7 +228,7 @@ class Trainer:
                 raise ValueError(f"{path}: checkpoint was trained with --precision {kept}, "
                                  f"this run asks for {self.config.precision}")
             self.agent = self._make_agent(precision=kept)
-            self.agent.task = self._task
+            self.agent.task, self.agent.observation = self._task, self._observation
         self.agent.load_state_dict(state["agent"])
         self.buffer.load_state_dict(state["buffer"])
         self.goal_reward.load_state_dict(state["goal_reward"])
