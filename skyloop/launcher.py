@@ -321,7 +321,7 @@ def _node_args(args: UpCommand, ports: dict[str, int]) -> dict[str, list[str]]:
     params = [a for p in args.param for a in ("--param", p)]
     security = _security_flags(args)
     return {
-        "perception": ["perception", *v],
+        "perception": ["perception", *v, "--encoding", args.encoding],
         "bridge": ["bridge", *v, "--api-port", str(ports["api"]),
                    "--api-local-port", str(ports["api_local"]),
                    "--gcs-port", str(ports["gcs"]), "--gcs-local-port", str(ports["gcs_local"]),
@@ -536,6 +536,11 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
         s["counters"] = graph.counter_totals()
         drops = ", ".join(f"{k} {v.get('dropped', 0)}" for k, v in s["counters"].items())
         print(f"dropped from bounded queues (overload): {drops}", flush=True)
+        refusals = s["counters"].get("policy", {}).get("refusals", 0)
+        if refusals:
+            print(f"the policy held the vehicle {refusals} time(s): a vehicle parameter or "
+                  f"perception's encoding differed from what its actor was trained with "
+                  f"(its STATUSTEXT and log say which)", flush=True)
     if graph.log_path:
         print(f"log: {graph.log_path}", flush=True)
     return s

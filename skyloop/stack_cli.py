@@ -76,10 +76,11 @@ def cmd_sim(args: SimCommand) -> int:
 
 def cmd_perception(args: PerceptionCommand) -> int:
     from perception.node import PerceptionNode
+    from perception.observation import ObservationConfig
 
     stop = _stop_event()
     bus = _open_bus(args)
-    node = PerceptionNode(bus, args.vehicle)
+    node = PerceptionNode(bus, args.vehicle, ObservationConfig(encoding=args.encoding))
     logging.getLogger("skyloop.perception").info("perception up for %s", args.vehicle)
     try:
         while not stop.wait(0.2):
@@ -176,6 +177,12 @@ def cmd_policy(args: PolicyCommand) -> int:
         bus.close()
         if node is not None:
             node.close()
+            from skyloop.launcher import counters_line
+
+            # what the launcher's summary (and `up --json`) shows of the policy: setpoints
+            # sent, holds because the vehicle or perception is not as trained, bad actions
+            print(counters_line({"sent": node.sent, "refusals": node.refusals,
+                                 "bad_actions": node.bad_actions}), flush=True)
     return 0
 
 

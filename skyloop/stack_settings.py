@@ -280,7 +280,17 @@ class SimCommand(SimRules, ClockFlags, BusFlags):
 
 
 @dataclass(kw_only=True)
-class PerceptionCommand(BusFlags):
+class EncodingFlag:
+    """How perception computes the face values (``perception.faces``)."""
+
+    encoding: Literal["distance", "proximity"] = "distance"
+    """perception's face values: distance from the face centre (eq. 3.2) or proximity 1 -
+    |p| / p_radius; the policy flies only an actor trained with the same (skyloop train
+    --encoding)"""
+
+
+@dataclass(kw_only=True)
+class PerceptionCommand(EncodingFlag, BusFlags):
     """``skyloop perception``: scan + odometry + goal -> observation."""
 
 
@@ -334,7 +344,8 @@ class BridgeCommand(ParamValues, SecurityFlags, MavlinkPorts, BusFlags):
 
 
 @dataclass(kw_only=True)
-class UpCommand(SimRules, MavlinkPorts, SecurityFlags, PolicyFlag, ClockFlags, VehicleFlag):
+class UpCommand(EncodingFlag, SimRules, MavlinkPorts, SecurityFlags, PolicyFlag, ClockFlags,
+                VehicleFlag):
     """``skyloop up``: the whole stack as child programs (``skyloop.launcher``)."""
 
     episodes: Annotated[int | None, tyro.conf.arg(metavar="N", help_behavior_hint=(

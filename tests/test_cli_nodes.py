@@ -33,7 +33,7 @@ PORTS = ["--api-port", "--api-local-port", "--gcs-port", "--gcs-local-port"]
 FLAGS = {
     "sim": [*BUS, *CLOCK, "--scenario", "--episodes", "--free-flight", "--goals-from-bus",
             "--param", "--lockstep-timeout", "--seed", "--max-steps", "--wait-go"],
-    "perception": BUS,
+    "perception": [*BUS, "--encoding"],
     "policy": [*BUS, *CLOCK, *SECURITY, "--policy", "--api-host", "--api-port",
                "--takeoff-altitude", "--weights-from-bus", "--hold"],
     "bridge": [*BUS, *SECURITY, *PORTS, "--bind", "--api-host", "--gcs-host", "--no-gcs",
@@ -42,7 +42,7 @@ FLAGS = {
            "--goals", "--policy", "--router", "--zenoh-config-dir", "--hub", "--log-dir",
            "--log-split-episodes", "--log-compression", "--json", "--vehicle", "--param",
            "--lockstep-timeout", "--restart", "--max-restarts", "--viz", "--viz-scan-every",
-           "-v", "--verbose"],
+           "--encoding", "-v", "--verbose"],
     "demo": ["--scenario", "--episodes", "--seed", "--out-dir", "--policy", "--json"],
     "render": ["--scenario", "--seed", "--out"],
     "bench": ["--quick", "--json", "--only", "--minutes"],
