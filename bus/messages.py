@@ -471,10 +471,13 @@ SEVERITIES = {"emergency": 0, "alert": 1, "critical": 2, "error": 3, "warning": 
 def vehicle_status(stamp_s: float, vehicle_time: float, revision: int, state: str,
                    armed: bool, landed: bool, failsafe_reason: str | None, crashed: bool,
                    home: Sequence[float] = (0.0, 0.0, 0.0),
-                   events: Sequence[tuple[str, str, str]] = ()) -> Any:
-    """``skyloop_msgs/VehicleStatus``; ``events``: (text, kind, severity name) each."""
+                   events: Sequence[tuple[str, str, str]] = (),
+                   last_setpoint_time: float = math.nan) -> Any:
+    """``skyloop_msgs/VehicleStatus``; ``events``: (text, kind, severity name) each;
+    ``last_setpoint_time``: the newest accepted setpoint's vehicle time (NaN: none)."""
     return VehicleStatus(
-        header=header(stamp_s, "world"), vehicle_time=float(vehicle_time), revision=int(revision),
+        header=header(stamp_s, "world"), vehicle_time=float(vehicle_time),
+        last_setpoint_time=float(last_setpoint_time), revision=int(revision),
         state=str(state), armed=bool(armed), landed=bool(landed),
         failsafe=failsafe_reason is not None, failsafe_reason=failsafe_reason or "",
         crashed=bool(crashed), home=np.array(home, dtype=np.float64).reshape(3),

@@ -193,6 +193,12 @@ class Commander:
         return True
 
     @property
+    def last_setpoint_time(self) -> float:
+        """When the newest accepted setpoint was offered (commander time; -inf: none
+        since the last reset): what setpoint loss is counted from."""
+        return self._last_setpoint_time
+
+    @property
     def offboard_asked(self) -> float:
         """When OFFBOARD was last asked for and granted (commander time; -inf: never; an
         ask while in OFFBOARD counts too: a restarted companion asks once it flies)."""

@@ -20,6 +20,9 @@ few milliseconds while it waits), so requests are answered within a step.
   state or the flags change or events happened (transitions, failsafes, refusals: each
   becomes a STATUSTEXT at the bridge), and at least every ``keepalive_s`` of wall time.
   ``revision`` counts changes so a reader keeps the newest of a status and an answer.
+  Each status also carries the vehicle time of the newest setpoint the commander
+  accepted (``last_setpoint_time``, not a change by itself), so a reader can time the
+  setpoint-loss failsafe in the vehicle's clock.
 * **Parameters** (``skyloop/<vehicle>/params``, ``Parameter``): names of
   :mod:`bus.params`; the sim's are applied at once (see :func:`apply_param`), those of
   other nodes ignored; invalid ones (unknown, out of range, not finite) are counted in
@@ -153,9 +156,11 @@ class VehicleService:
             return False
         c = self.commander
         home = (*c.home, 0.0) if c.home is not None else (math.nan, math.nan, math.nan)
+        last = c.last_setpoint_time
         self.status_pub.put(m.vehicle_status(stamp_s, now, self.revision, str(c.state),
                                              c.armed, c.landed, c.failsafe_reason, c.crashed,
-                                             home, self._events))
+                                             home, self._events,
+                                             last if math.isfinite(last) else math.nan))
         self._events = []
         self._next_keepalive = wall + self.keepalive_s
         return True

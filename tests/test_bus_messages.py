@@ -112,6 +112,19 @@ def test_clock_and_actor_roundtrip():
     assert m.actor_blob(back) == blob
 
 
+def test_vehicle_status_roundtrip():
+    msg = m.vehicle_status(1.5, 12.3, 4, "HOLD", True, False, "setpoint_loss", False,
+                           (1.0, 2.0, 0.0), [("Failsafe: setpoints lost, holding",
+                                              "failsafe", "critical")], 11.7)
+    back = _roundtrip(msg)
+    assert (back.vehicle_time, back.last_setpoint_time, back.revision) == (12.3, 11.7, 4)
+    assert (back.state, back.failsafe, back.failsafe_reason) == ("HOLD", True, "setpoint_loss")
+    assert list(back.event_texts) == ["Failsafe: setpoints lost, holding"]
+    assert list(back.event_severities) == [2]
+    none = _roundtrip(m.vehicle_status(0.0, 0.0, 0, "DISARMED", False, True, None, False))
+    assert np.isnan(none.last_setpoint_time) and not none.failsafe  # no setpoint yet
+
+
 def test_time_conversion_edges():
     for t in (0.0, 1e-9, 0.999999999, 1234.5, -0.25):
         assert m.nanoseconds(m.time_msg(t)) == round(t * 1e9)

@@ -328,10 +328,13 @@ def test_offboard_flies_setpoints_in_world_and_body_frames() -> None:
 def test_non_finite_setpoints_are_refused_and_counted() -> None:
     c, sim = in_offboard()
     sim.stream(1, (1.0, 0.0, 0.0, 0.0))
+    t_last = sim.now
+    sim.step()
     for bad in ((math.nan, 0.0, 0.0, 0.0), (0.0, math.inf, 0.0, 0.0), (0.0, 0.0, 0.0, -math.inf)):
         assert not c.setpoint(sim.now, *bad)
     assert not c.setpoint(sim.now, 0.0, 0.0, 0.0, 0.0, yaw=math.nan)
     assert c.rejected_setpoints == 4
+    assert c.last_setpoint_time == t_last  # a refused setpoint is not a setpoint
     assert sim.step() == (1.0, 0.0, 0.0, 0.0)
 
 
@@ -340,6 +343,7 @@ def test_setpoint_loss_failsafe_timing() -> None:
     c, sim = in_offboard(cfg)
     sim.stream(14, (1.0, 0.0, 0.0, 0.0))
     t_last = sim.now
+    assert c.last_setpoint_time == t_last  # what loss is counted from (and published)
     sim.step(10)  # newest setpoint exactly 1.0 s old: still offboard
     assert sim.now - t_last == pytest.approx(1.0) and c.state == State.OFFBOARD
     assert sim.out == (1.0, 0.0, 0.0, 0.0)

@@ -13,6 +13,7 @@ stops the launcher, naming it.
 from __future__ import annotations
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -363,17 +364,75 @@ def test_an_actor_that_outputs_nan_stops_the_stack_and_says_why(tmp_path):
     assert "forked after opening" not in out.stdout + out.stderr
 
 
+HOLD, LAND, CRASH, OFFBOARD = ("Failsafe: setpoints lost, holding", "Failsafe: landing",
+                               "Collision: disarmed", "Offboard")  # commander event texts
+TOL_S = 1e-6  # float time
+
+
+class StatusEvents:
+    """Every event text of uav1's ``status`` in order, each as (text, the status's
+    ``vehicle_time``, its ``last_setpoint_time``: the vehicle time of the newest setpoint
+    the commander had accepted)."""
+
+    def __init__(self, bus) -> None:
+        from bus import keys
+
+        self.events: list[tuple[str, float, float]] = []
+        bus.subscribe(keys.STATUS, "uav1", self.on_status)
+
+    def on_status(self, msg) -> None:
+        t, setpoint = float(msg.vehicle_time), float(msg.last_setpoint_time)
+        self.events.extend((str(text), t, setpoint) for text in msg.event_texts)
+
+    def texts(self, start: int, end: int | None = None) -> list[str]:
+        return [text for text, _, _ in self.events[start:end]]
+
+
+def assert_failsafe_timing(events: list[tuple[str, float, float]], loss_s: float,
+                           hold_land_s: float) -> str | None:
+    """The failsafe's timing in the vehicle's clock (as tests/test_vehicle_failsafe.py
+    has it in lockstep): HOLD at the first control step after no setpoint came for
+    COM_OF_LOSS_T (``loss_s``), LAND SKY_HOLD_LAND_T (``hold_land_s``) after HOLD, each to
+    one control period; with no LAND, whatever ended the hold (a crash, the restarted
+    policy's OFFBOARD) came before LAND was due. ``events``: :class:`StatusEvents`'
+    from the kill to the restarted policy's OFFBOARD (included). The last setpoint is
+    the one the vehicle says it took (the HOLD status's ``last_setpoint_time``); a status
+    follows the step whose event it carries, so that step's time is the status's
+    ``vehicle_time`` less a period. Returns what was seen, None if the vehicle crashed
+    before any HOLD (nothing to time)."""
+    from sitl.vehicle import VehicleConfig
+
+    period = VehicleConfig().control_period  # the sim's (its default)
+    texts = [text for text, _, _ in events]
+    if HOLD not in texts:
+        return None
+    i = texts.index(HOLD)
+    hold, setpoint = events[i][1] - period, events[i][2]
+    what = f"last setpoint at {setpoint:.2f} s, HOLD at {hold:.2f} s"
+    assert math.isfinite(setpoint), what
+    assert loss_s + TOL_S < hold - setpoint <= loss_s + period + TOL_S, what
+    land = next((t - period for text, t, _ in events[i + 1:] if text == LAND), None)
+    if land is None:  # the hold ended first (a status after its step, or during it)
+        end = next(t for text, t, _ in events[i + 1:] if text in (CRASH, OFFBOARD))
+        what += f", no LAND: the hold ended at {end:.2f} s"
+        assert end - hold <= hold_land_s + period + TOL_S, what
+    else:
+        what += f", LAND at {land:.2f} s"
+        assert hold_land_s - TOL_S <= land - hold <= hold_land_s + period + TOL_S, what
+    return what
+
+
 def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     """Seeded chaos with ``--restart on-failure`` (bounded: 3 rounds): SIGKILL each of
     policy, perception and bridge once, in a random order, a random moment after an
     episode line, once the run flies again after the previous round. Each time the
-    vehicle's failsafe acts (setpoints lost -> HOLD, then LAND, seen on the bus; or the
-    vehicle crashed into what it was flying at, before or while braking) until the
-    restarted policy takes over, the launcher names the node and restarts it (the
+    vehicle's failsafe acts (setpoints lost -> HOLD, then LAND, seen on the bus, on time in
+    the vehicle's clock: :func:`assert_failsafe_timing`; or the vehicle crashed into what
+    it was flying at, before or while braking) until the restarted policy takes over,
+    the launcher names the node and restarts it (the
     policy with perception or the bridge: rest-for-one), the run finishes its episodes,
     the episodes in progress end ``aborted`` (never merged), and the log holds every
     episode whole."""
-    from bus import keys
     from bus.node import Bus
     from bus.session import SessionConfig
 
@@ -383,15 +442,15 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     rounds = [(str(victim), float(rng.uniform(0, 0.3)))
               for victim in rng.permutation(["policy", "perception", "bridge"])]
     out = tmp_path / "chaos"
+    loss_s, hold_land_s = 0.5, 0.3  # hold, land: well before a new policy
     args = up_args("--episodes", "20", "--policy", "scripted", "--restart", "on-failure",
                    "--log-dir", str(out), "--json", str(out / "summary.json"),
-                   "--lockstep-timeout", "0.5", "--param", "COM_OF_LOSS_T=0.5",
-                   "--param", "SKY_HOLD_LAND_T=0.3")  # hold, land: well before a new policy
+                   "--lockstep-timeout", "0.5", "--param", f"COM_OF_LOSS_T={loss_s}",
+                   "--param", f"SKY_HOLD_LAND_T={hold_land_s}")
     hub = args[args.index("--hub") + 1]
     bus = Bus.open(SessionConfig(hub=hub))
-    texts: list[str] = []
-    bus.subscribe(keys.STATUS, "uav1", lambda msg: texts.extend(map(str, msg.event_texts)))
-    seen: list[int] = []  # len(texts) at each kill
+    status = StatusEvents(bus)
+    seen: list[int] = []  # len(status.events) at each kill
     flown = [0]  # episode lines since the last restart of the policy
 
     def on_line(line: str, pids: dict[str, int]) -> None:
@@ -408,7 +467,7 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
                 threading.Timer(delay, kill, (len(seen) - 1, pids[victim])).start()
 
     def kill(k: int, pid: int) -> None:
-        seen[k] = len(texts)
+        seen[k] = len(status.events)
         os.kill(pid, signal.SIGKILL)
 
     try:
@@ -419,15 +478,16 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     assert len(seen) == 3 and -1 not in seen, (seen, text)  # every kill landed in the run
     for k, (victim, _) in enumerate(rounds):
         assert f"node '{victim}' exited (code -9)" in text, (victim, text)
-        after = texts[seen[k]:seen[k + 1] if k + 1 < len(seen) else None]
-        assert "Offboard" in after, (victim, after)  # the restarted policy took over
-        before = after[:after.index("Offboard")]
+        end = seen[k + 1] if k + 1 < len(seen) else None
+        after = status.texts(seen[k], end)
+        assert OFFBOARD in after, (victim, after)  # the restarted policy took over
+        cut = after.index(OFFBOARD)
         # until then the vehicle held, then landed; or it crashed into what the scripted
         # policy flew at, still on the last setpoint or braking in the hold
-        hold, land, crash = ("Failsafe: setpoints lost, holding", "Failsafe: landing",
-                             "Collision: disarmed")
-        seq = [t for t in before if t in (hold, land, crash)]
-        assert seq[:1] == [crash] or seq[:2] in ([hold, land], [hold, crash]), (victim, after)
+        seq = [t for t in after[:cut] if t in (HOLD, LAND, CRASH)]
+        assert seq[:1] == [CRASH] or seq[:2] in ([HOLD, LAND], [HOLD, CRASH]), (victim, after)
+        print(victim, assert_failsafe_timing(status.events[seen[k]:seen[k] + cut + 1],
+                                             loss_s, hold_land_s))
     assert "restarting it (1/3)" in text
     for needed in ("perception", "bridge"):
         assert f"restarting 'policy' too (it depends on '{needed}')" in text, text
@@ -442,26 +502,26 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
 
 def test_a_killed_policy_is_restarted_in_real_time(tmp_path):
     """The chaos test's fault in real time (10 Hz, the sim never waits for a command):
-    the policy SIGKILLed mid-episode; the vehicle's failsafe holds (then lands), the
-    launcher names the policy and starts it again, the new policy takes the vehicle
-    again, the run finishes its episodes, the cut one ``aborted``, the log whole."""
-    from bus import keys
+    the policy SIGKILLed mid-episode; the vehicle's failsafe holds (then lands), on time
+    in the vehicle's clock (:func:`assert_failsafe_timing`), the launcher names the
+    policy and starts it again, the new policy takes the vehicle again, the run finishes
+    its episodes, the cut one ``aborted``, the log whole."""
     from bus.node import Bus
     from bus.session import SessionConfig
 
     out = tmp_path / "rt"
+    loss_s, hold_land_s = 0.5, 1.0
     args = up_args("--realtime", "--episodes", "3", "--max-steps", "30", "--policy",
                    "scripted", "--restart", "on-failure", "--log-dir", str(out), "--json",
-                   str(out / "summary.json"), "--param", "COM_OF_LOSS_T=0.5",
-                   "--param", "SKY_HOLD_LAND_T=1.0")
+                   str(out / "summary.json"), "--param", f"COM_OF_LOSS_T={loss_s}",
+                   "--param", f"SKY_HOLD_LAND_T={hold_land_s}")
     bus = Bus.open(SessionConfig(hub=args[args.index("--hub") + 1]))
-    texts: list[str] = []
-    bus.subscribe(keys.STATUS, "uav1", lambda msg: texts.extend(map(str, msg.event_texts)))
+    status = StatusEvents(bus)
     killed_at: list[int] = []
 
     def on_line(line: str, pids: dict[str, int]) -> None:
         if line.startswith("episode ") and not killed_at:  # a moment into the next one
-            killed_at.append(len(texts))
+            killed_at.append(len(status.events))
             threading.Timer(0.5, os.kill, (pids["policy"], signal.SIGKILL)).start()
 
     try:
@@ -470,15 +530,16 @@ def test_a_killed_policy_is_restarted_in_real_time(tmp_path):
         bus.close()
     assert code == 0, text
     assert "node 'policy' exited (code -9)" in text and "restarting it (1/3)" in text
-    after = texts[killed_at[0]:]
-    assert "Offboard" in after, after  # the restarted policy took over
+    after = status.texts(killed_at[0])
+    assert OFFBOARD in after, after  # the restarted policy took over
+    cut = after.index(OFFBOARD)
     # until then the vehicle held (and landed, if the new policy came later than
     # SKY_HOLD_LAND_T), or crashed into what the scripted policy flew at
-    hold, land, crash = ("Failsafe: setpoints lost, holding", "Failsafe: landing",
-                         "Collision: disarmed")
-    seq = [t for t in after[:after.index("Offboard")] if t in (hold, land, crash)]
-    assert seq[:1] == [crash] or seq in ([hold], [hold, land]) or \
-        seq[:2] in ([hold, land], [hold, crash]), after
+    seq = [t for t in after[:cut] if t in (HOLD, LAND, CRASH)]
+    assert seq[:1] == [CRASH] or seq in ([HOLD], [HOLD, LAND]) or \
+        seq[:2] in ([HOLD, LAND], [HOLD, CRASH]), after
+    print(assert_failsafe_timing(status.events[killed_at[0]:killed_at[0] + cut + 1], loss_s,
+                                 hold_land_s))
     s = json.loads((out / "summary.json").read_text())
     # once, under a second test worker's load, the restarted policy was restarted again
     # (cause not found yet): the run must still go on

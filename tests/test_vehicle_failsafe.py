@@ -12,7 +12,9 @@ from the last setpoint the vehicle received (the last ``cmd_vel``, stamped with 
 stack time of the step it answers) to the first HOLD status, and from it to LAND. A
 status carries both clocks (``header.stamp``: stack time; ``vehicle_time``: the
 commander's), which run together within an episode, so a status of the setpoint's
-episode gives the setpoint's vehicle time (see :func:`assert_failsafe_timing`).
+episode gives the setpoint's vehicle time (see :func:`assert_failsafe_timing`). The
+status's own ``last_setpoint_time`` (the vehicle's record of the newest setpoint it took,
+which tests/test_stack_up.py times the failsafe by) must agree with that mapping.
 """
 
 from __future__ import annotations
@@ -40,13 +42,15 @@ TOL_S = 1e-6  # float time
 
 
 class StatusLog:
-    """Every ``status`` of uav1: states in order (and the vehicle time of each one's
-    first status), event texts, every status's (stack time ns, vehicle time)."""
+    """Every ``status`` of uav1: states in order (and the vehicle time and last setpoint
+    time of each one's first status), event texts, every status's (stack time ns,
+    vehicle time)."""
 
     def __init__(self, bus: Bus) -> None:
         self.lock = threading.Lock()
         self.states: list[str] = []
         self.entered: list[float] = []  # per state in ``states``
+        self.last_setpoints: list[float] = []  # per state in ``states``
         self.clocks: list[tuple[int, float]] = []
         self.texts: list[str] = []
         self.failsafe_reasons: set[str] = set()
@@ -60,6 +64,7 @@ class StatusLog:
             if not self.states or self.states[-1] != msg.state:
                 self.states.append(str(msg.state))
                 self.entered.append(vehicle_time)
+                self.last_setpoints.append(float(msg.last_setpoint_time))
             self.texts.extend(str(t) for t in msg.event_texts)
             if msg.failsafe:
                 self.failsafe_reasons.add(str(msg.failsafe_reason))
@@ -191,12 +196,16 @@ def assert_failsafe_timing(status: StatusLog, steps: Steps, n: int) -> None:
       slower than the lockstep timeout, or a bridge killed between its sends to the test
       and to the sim) the vehicle took it later or never, so the vehicle's last setpoint
       is known only to be no older than step k - 1's (which let step k come): then only
-      HOLD no sooner than COM_OF_LOSS_T after that one is asserted."""
+      HOLD no sooner than COM_OF_LOSS_T after that one is asserted.
+    * The HOLD status's ``last_setpoint_time`` (the vehicle's own record): S's vehicle
+      time if it came in time, else no older than step k - 1's; and HOLD follows it as
+      the rule says."""
     period_ns = round(PERIOD_S * 1e9)
     with steps.lock:
         last, clocks = steps.commands[-1], dict(steps.clocks)
     with status.lock:
         pairs, entered = list(status.clocks), list(status.entered)
+        published = status.last_setpoints[n]
     assert last in clocks, ("the last setpoint answers no step seen", last, len(clocks))
     episode, step = clocks[last]
     start = last - step * period_ns
@@ -209,12 +218,16 @@ def assert_failsafe_timing(status: StatusLog, steps: Steps, n: int) -> None:
         "the vehicle answered a step by a command this test did not see"
     hold, land = entered[n] - PERIOD_S, entered[n + 1] - PERIOD_S
     what = (f"last setpoint at {setpoint:.2f} s (episode {episode} step {step}, "
-            f"{'in time' if on_time else 'late'}), HOLD at {hold:.2f} s, LAND at {land:.2f} s")
+            f"{'in time' if on_time else 'late'}; the vehicle says {published:.2f} s), "
+            f"HOLD at {hold:.2f} s, LAND at {land:.2f} s")
     print(what)
     if on_time:
         assert LOSS_S + TOL_S < hold - setpoint <= LOSS_S + PERIOD_S + TOL_S, what
+        assert abs(published - setpoint) <= TOL_S, what
     else:
         assert hold - (setpoint - PERIOD_S) > LOSS_S + TOL_S, what
+        assert published >= setpoint - PERIOD_S - TOL_S, what
+    assert LOSS_S + TOL_S < hold - published <= LOSS_S + PERIOD_S + TOL_S, what
     assert HOLD_LAND_S - TOL_S <= land - hold <= HOLD_LAND_S + PERIOD_S + TOL_S, what
 
 
