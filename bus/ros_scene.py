@@ -17,8 +17,9 @@ bounded queue then dropped messages (seen: 175 of one run on a loaded machine). 
 worker reads scenario names, one a line, on stdin and answers each on stdout with a
 frame: status (uint8, 0 ok), name length (uint16), data length (uint32), little-endian,
 then the name and the CDR bytes of the world's MarkerArray (or the error text). It
-builds ``skyloop up``'s default scenario (valley) as soon as it starts, and each
-world once. It runs in a session of its own, so the signals that stop the recorder
+builds the run's scenario (``--prebuild``: what ``skyloop record --scenario`` gives, which
+``skyloop up`` passes; valley without one; a family's template only) as soon as it
+starts, and each world once. It runs in a session of its own, so the signals that stop the recorder
 (the launcher's to the recorder's process group, a terminal's Ctrl-C) do not reach it:
 a world being built at stop can still be written; it exits when the recorder closes
 the pipe or dies (end of input).

@@ -14,8 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from policy.algorithms.scripted import StraightLineController
-from policy.training.env import UavNavEnv
-from policy.training.evaluate import make_controller
+from policy.training.evaluate import env_for, make_controller
 from policy.training.rollout import run_episodes, summarize
 
 
@@ -23,10 +22,10 @@ def run_demo(scenario: str, episodes: int, seed: int, out_dir: Path,
              policy: str | None = None) -> dict:
     from sitl.render import render_scene
 
-    controller = make_controller(policy)
+    controller = make_controller(policy, task=None)
     print(f"skyloop demo: {episodes} episodes of '{scenario}' flown by the "
           f"{controller.name}, in-process env, seeds {seed}..{seed + episodes - 1}")
-    env = UavNavEnv(scenario=scenario)
+    env = env_for(controller, scenario)  # the state it was trained to read
     results, steps, t0 = [], 0, time.perf_counter()
     for r in run_episodes(env, controller, episodes, seed):
         results.append(r)

@@ -352,6 +352,7 @@ def test_frames_radius_and_encoding_shape_the_state_and_travel_with_the_actor(tm
 @pytest.mark.parametrize(("kw", "flag"), [
     ({"frames": 1}, "--frames"), ({"ico_radius": 0.2}, "--ico-radius"),
     ({"encoding": "binary"}, "--encoding: must be one of"),
+    ({"env": "Pendulum-v1", "frames": 5}, "--frames: is for the skyloop task"),
     ({"ico_radius": float("nan")}, "--ico-radius"),
     ({"ico_radius": 6.0}, "--ico-radius: 6.0 m is beyond the LiDAR's range")])
 def test_a_state_shape_the_task_cannot_have_is_refused_naming_the_flag(kw, flag):

@@ -7,7 +7,8 @@ One control step (0.1 s) is the same pipeline the process graph runs, in one pro
     -> collision check of the true body sphere (sitl.world)
     -> VLP-16 scan at the true pose (sitl.lidar)
     -> 32 icosahedron faces + altitude, h, g from the estimate (perception)
-    -> 3-frame state (perception.FrameStacker), reward eq. 3.5 (policy.algorithms.rewards)
+    -> the stacked state (perception.FrameStacker, EnvConfig.frames), reward eq. 3.5
+       (policy.algorithms.rewards)
 
 Episode ends (abr-method.md): goal reached (within ``goal_radius`` = 2 m of the goal
 and altitude not above ``goal_max_altitude`` = 6 m) or collision are terminal; 300 steps

@@ -77,7 +77,8 @@ class ActorController:
         shipped = path.resolve() == SHIPPED_POLICY
         self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
         self.inputs = inputs = self.actor.net[0].in_features
-        outputs = self.actor.net[-2].out_features
+        self.outputs = outputs = self.actor.net[-2].out_features
+        self.records_task = self.actor.trained_task is not None
         if task is not None and (inputs, outputs) != (task.state_dim, task.action_dim):
             raise ValueError(f"{path}: an actor for {inputs} inputs and {outputs} actions; "
                              f"this task has {task.state_dim} and {task.action_dim}")
@@ -100,6 +101,32 @@ def make_controller(policy: str | None, task: TaskSpec | None = TASK):
     return ActorController(policy or SHIPPED_POLICY, task=task)
 
 
+#: The LiDAR's range for an actor trained with icosahedron radius r: r + this (the
+#: default 4 m radius and 4.5 m range; what experiments/general_state/radius6.toml trains
+#: with). Points beyond the radius are not in the faces, but the range still matters a
+#: little: the LiDAR's noise stream is drawn per return within range.
+LIDAR_MARGIN = EpisodeConfig.lidar_max_range - TASK.ico_radius
+
+
+def env_for(controller, scenario: str) -> UavNavEnv:
+    """The in-process env in the state ``controller`` was trained to read: its recorded
+    frames, icosahedron radius (LiDAR range radius + ``LIDAR_MARGIN``) and observation
+    (the scripted controller and actors that record none: the default task's). An actor
+    whose input or output size does not fit that state is a ``ValueError``."""
+    trained = getattr(controller, "trained_task", None) or TASK
+    inputs, outputs = getattr(controller, "inputs", None), getattr(controller, "outputs", None)
+    if inputs is not None and (inputs, outputs) != (trained.state_dim, trained.action_dim):
+        what = ("it records a task of" if getattr(controller, "records_task", False)
+                else "it records no task; the default task has")
+        raise ValueError(f"{controller.name}: an actor for {inputs} inputs and {outputs} "
+                         f"actions; {what} {trained.state_dim} and {trained.action_dim}")
+    return UavNavEnv(config=EnvConfig(
+        frames=trained.frames, ico_radius=trained.ico_radius,
+        episode=EpisodeConfig(scenario=scenario,
+                              lidar_max_range=trained.ico_radius + LIDAR_MARGIN)),
+        observation_config=getattr(controller, "trained_observation", None))
+
+
 def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_SEED,
              json_path: Path | None = None, progress: bool = True, *,
              worlds: int | None = None, validation: bool = False) -> dict:
@@ -118,21 +145,8 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
     names = eval_worlds(source.families[0], worlds, validation=validation) if worlds else []
     torch.set_num_threads(1)
     controller = make_controller(policy, task=None)
-    # the state as the actor was trained to read it (its recorded frames and icosahedron
-    # radius; the scripted controller and actors that record none: the default task's)
-    trained = getattr(controller, "trained_task", None) or TASK
-    observation = getattr(controller, "trained_observation", None)
-    # (the faces see only points within the radius: any LiDAR range at least it gives the
-    # same observation)
-    lidar = max(EpisodeConfig.lidar_max_range, trained.ico_radius)
-    env = UavNavEnv(config=EnvConfig(
-        frames=trained.frames, ico_radius=trained.ico_radius,
-        episode=EpisodeConfig(scenario=names[0] if names else scenario, lidar_max_range=lidar)),
-        observation_config=observation)
-    inputs = getattr(controller, "inputs", None)
-    if inputs is not None and inputs != trained.state_dim:
-        raise ValueError(f"{policy}: an actor for {inputs} inputs, but it records a task "
-                         f"of {trained.state_dim} ({trained.frames} frames)")
+    env = env_for(controller, names[0] if names else scenario)
+    trained = env.task
     results = []
     for i in tqdm(range(episodes), total=episodes, unit="ep", disable=not progress,
                   desc=f"eval {scenario}"):

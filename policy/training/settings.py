@@ -168,6 +168,9 @@ class TrainConfig:
                                            f"got {self.precision!r}")
         if not 0.5 <= self.ico_radius <= 50.0:  # SKY_ICO_RADIUS's range (bus.params)
             raise ConfigError("ico_radius", f"must be in [0.5, 50] m, got {self.ico_radius}")
+        if self.env and self.frames != TASK.frames:
+            raise ConfigError("frames", f"is for the skyloop task; a Gymnasium env's state "
+                                        f"stacks {TASK.frames} (policy.training.gym_task)")
         if self.ico_radius > self.lidar_max_range and not self.env:
             raise ConfigError("ico_radius", f"{self.ico_radius} m is beyond the LiDAR's range "
                                             f"(--lidar-max-range {self.lidar_max_range}): the "

@@ -363,6 +363,14 @@ def _evaluate_scenario(actor: Path, config: TrainConfig, episodes: int) -> dict:
     torch.set_num_threads(1)
     controller = ActorController(actor, task=None)  # the trial's task, not the default's
     env = make_envs(asdict(config), 1)[0]
+    t = controller.trained_task
+    if ((t.frames, t.ico_radius) != (env.task.frames, env.task.ico_radius)
+            or controller.trained_observation != env.obs_config):
+        env.close()  # (a grid rerun into this directory with another state)
+        raise ValueError(f"{actor}: trained for {t.frames} frames, radius {t.ico_radius:g} "
+                         f"m, {controller.trained_observation.encoding} encoding; the grid "
+                         f"asks for {env.task.frames}, {env.task.ico_radius:g} m, "
+                         f"{env.obs_config.encoding}")
     try:
         results = list(run_episodes(env, controller, episodes, EVAL_SEED))
     finally:
