@@ -137,3 +137,55 @@ def test_no_flight_under_parameters_the_actor_was_not_trained_for(tmp_path):
         gcs.close()
         for b in buses:
             b.close()
+
+
+def test_a_policy_started_beside_a_crashed_vehicle_arms_once_it_is_placed(tmp_path):
+    """A policy (re)started while the vehicle lies crashed and disarmed is denied arming
+    until the simulator places the vehicle for the next episode: it tries again and
+    joins then, instead of exiting (the chaos test's restarted policy did, and the run
+    ran out of restarts)."""
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    buses = [Bus.open(cfg) for _ in range(3)]
+    api, api_local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
+    bridge = BridgeNode(buses[0], "uav1", VehicleLinkConfig(
+        api=LinkConfig(api_local, api),
+        gcs=LinkConfig(free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)),
+        params_file=str(tmp_path / "params.json")))
+    stop = threading.Event()
+    thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
+    commander = Commander()
+    commander.place(0.0, True, "OFFBOARD")
+    commander.collision(0.0)  # the episode ended in a crash: disarmed, arming refused
+    service = VehicleService(buses[1], "uav1", commander, None)
+    node = PolicyNode(buses[2], lambda state: np.zeros(4), "uav1",
+                      OffboardClientConfig(listen_port=api), trained=TASK)
+    denied_until = time.monotonic() + 2.0
+
+    def vehicle() -> None:  # the sim: the next episode places the vehicle after 2 s
+        t, placed = 0.0, False
+        while not stop.is_set():
+            if not placed and time.monotonic() > denied_until:
+                commander.place(t, True, "OFFBOARD")
+                placed = True
+            service.serve(t)
+            service.publish_status(0.0, t, force=True)
+            t += 0.01  # the vehicle's clock at wall speed (the client streams in wall time)
+            time.sleep(0.01)
+
+    sim = threading.Thread(target=vehicle, daemon=True)
+    thread.start()
+    sim.start()
+    try:
+        node.client.wait_heartbeat(10.0)
+        node._arm(15.0)  # start()'s arming: raised CommandRejected at once before the retry
+        assert time.monotonic() > denied_until and node.client.armed
+        denials = f"cmd.{mavlink.MAV_CMD_COMPONENT_ARM_DISARM}.{mavlink.MAV_RESULT_DENIED}"
+        assert bridge.link.counters[denials] >= 1, bridge.link.counters
+    finally:
+        stop.set()
+        thread.join(5.0)
+        sim.join(5.0)
+        bridge.close()
+        node.close()
+        for b in buses:
+            b.close()

@@ -60,7 +60,12 @@ from bus import messages as m
 from bus.node import Bus
 from bus.task import TASK, TaskSpec
 from mavlink_bridge.modes import AUTO_LOITER, AUTO_TAKEOFF, OFFBOARD
-from mavlink_bridge.offboard_client import OffboardClient, OffboardClientConfig, OffboardError
+from mavlink_bridge.offboard_client import (
+    CommandRejected,
+    OffboardClient,
+    OffboardClientConfig,
+    OffboardError,
+)
 from mavlink_bridge.transport import mavlink
 from perception.observation import FrameStacker, ObservationConfig
 
@@ -117,7 +122,7 @@ class PolicyNode:
         log.info("waiting up to %g s for the vehicle's heartbeat", timeout)
         c.wait_heartbeat(timeout)
         c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
-        c.arm()
+        self._arm(timeout)
         try:
             c.takeoff(takeoff_altitude)
         except OffboardError:
@@ -137,6 +142,23 @@ class PolicyNode:
             self._stream_zero(False)
         log.info("offboard: flying %s (weights version %d)",
                  getattr(self.controller, "name", "controller"), self.weights_version)
+
+    def _arm(self, timeout: float, retry_s: float = 0.5) -> None:
+        """Arm, retrying a denial for up to ``timeout`` s: a node restarted while the
+        vehicle lies crashed and disarmed (its episode ended in a collision) is denied
+        until the simulator places the vehicle for the next episode (seen in the chaos
+        test: the restarted policy exited on the denial and used up its restarts)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                self.client.arm()
+                return
+            except CommandRejected as err:
+                if time.monotonic() + retry_s > deadline:
+                    raise
+                log.info("arming denied (%s): the vehicle may be down between episodes; "
+                         "trying again", err)
+                time.sleep(retry_s)
 
     def _stream_zero(self, on: bool) -> None:
         """Start (``on``: a zero setpoint, re-sent at 20 Hz by the client) or stop the
