@@ -534,7 +534,9 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
               f"{sum(s['cpu_ms_per_step'].values()):.2f}", flush=True)
     if graph.counters:
         s["counters"] = graph.counter_totals()
-        drops = ", ".join(f"{k} {v.get('dropped', 0)}" for k, v in s["counters"].items())
+        # only the nodes with bounded queues count drops (the policy's counters have none)
+        drops = ", ".join(f"{k} {v['dropped']}" for k, v in s["counters"].items()
+                          if "dropped" in v)
         print(f"dropped from bounded queues (overload): {drops}", flush=True)
         refusals = s["counters"].get("policy", {}).get("refusals", 0)
         if refusals:
