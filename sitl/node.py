@@ -171,6 +171,15 @@ class SimNode:
         """Goals from the bus no episode could reach."""
         return self.goals.rejects
 
+    def counters(self) -> dict[str, int]:
+        """What the node's bounded inboxes dropped (the oldest item, when one is full),
+        per inbox (``dropped_<topic>``) and in total (``dropped``): the counters line
+        ``skyloop sim`` prints last. Read at exit; the inboxes count as they drop, so
+        the control step pays nothing for it."""
+        inboxes = (self.cmds, self.goals.inbox, self.service.params)
+        each = {f"dropped_{i.subscription.topic}": i.dropped for i in inboxes}
+        return {"dropped": sum(each.values()), **each}
+
     def _serve_requests(self) -> None:
         """Requests, and the status (on changes, and as a keepalive)."""
         now = self.clock.now()

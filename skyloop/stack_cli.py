@@ -60,6 +60,7 @@ def cmd_sim(args: SimCommand) -> int:
     _raise_on_term()
     values = args.params
     bus = _open_bus(args)
+    node = None
     try:
         node = SimNode(bus, SimNodeConfig(scenario=args.scenario, episodes=args.episodes,
                                           seed=args.seed, vehicle=args.vehicle,
@@ -71,6 +72,11 @@ def cmd_sim(args: SimCommand) -> int:
         node.run(lambda line: print(line, flush=True), go)
     finally:
         bus.close()
+        if node is not None:
+            from skyloop.launcher import counters_line
+
+            # what the sim's bounded inboxes (commands, goals, parameters) dropped
+            print(counters_line(node.counters()), flush=True)
     return 0
 
 
@@ -180,9 +186,9 @@ def cmd_policy(args: PolicyCommand) -> int:
             from skyloop.launcher import counters_line
 
             # what the launcher's summary (and `up --json`) shows of the policy: setpoints
-            # sent, holds because the vehicle or perception is not as trained, bad actions
-            print(counters_line({"sent": node.sent, "refusals": node.refusals,
-                                 "bad_actions": node.bad_actions}), flush=True)
+            # sent, holds because the vehicle or perception is not as trained, bad
+            # actions, what its bounded inboxes dropped
+            print(counters_line(node.counters()), flush=True)
     return 0
 
 

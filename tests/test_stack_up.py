@@ -96,16 +96,20 @@ def test_summary_matches_env(runs, env_episodes):
         # each node's last line, summed per node: the bounded queues dropped nothing in
         # lockstep, and what they passed on is counted
         counters = summary["counters"]
-        assert set(counters) == {"perception", "bridge", "record", "policy"}, counters
-        queues = {k: c for k, c in counters.items() if k != "policy"}
-        assert all(c["dropped"] == 0 for c in queues.values()), counters
-        # the policy answered every step, never held the vehicle, never sent a bad action
+        assert set(counters) == {"perception", "bridge", "record", "policy", "sim"}, counters
+        assert all(c["dropped"] == 0 for c in counters.values()), counters
+        # the policy answered every step, never held the vehicle, never sent a bad
+        # action, its inboxes (observations, parameters) dropped nothing
         assert counters["policy"] == {"sent": summary["steps"], "refusals": 0,
-                                      "bad_actions": 0}, counters
+                                      "bad_actions": 0, "dropped": 0,
+                                      "dropped_observation": 0, "dropped_params": 0}, counters
+        # the sim's inboxes: commands, goals, parameters
+        assert counters["sim"] == {"dropped": 0, "dropped_cmd_vel": 0, "dropped_goal": 0,
+                                   "dropped_params": 0}, counters
         assert counters["perception"]["published"] == summary["steps"], counters  # one a step
         assert counters["record"]["written"] > counters["perception"]["published"]
-        assert "dropped from bounded queues (overload): bridge 0, perception 0, record 0" \
-            in stdout
+        assert "dropped from bounded queues (overload): bridge 0, perception 0, policy 0, " \
+            "record 0, sim 0" in stdout
 
 
 @pytest.mark.slow

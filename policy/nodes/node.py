@@ -326,5 +326,16 @@ class PolicyNode:
         while not stop():
             self.spin_once()
 
+    def counters(self) -> dict[str, int]:
+        """The counters line ``skyloop policy`` prints last: setpoints ``sent``,
+        ``refusals`` (holds for off-task parameters), ``bad_actions`` (non-finite), and
+        what its bounded inboxes dropped (the oldest item, when one is full), per inbox
+        (``dropped_<topic>``) and in total (``dropped``). Read at exit: the inboxes count
+        as they drop, so a step pays nothing for it."""
+        inboxes = [i for i in (self.inbox, self.params, self.events) if i is not None]
+        each = {f"dropped_{i.subscription.topic}": i.dropped for i in inboxes}
+        return {"sent": self.sent, "refusals": self.refusals,
+                "bad_actions": self.bad_actions, "dropped": sum(each.values()), **each}
+
     def close(self) -> None:
         self.client.close()
