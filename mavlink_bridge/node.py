@@ -48,6 +48,11 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
   like a PX4 that is not running, a vehicle whose sim has not started or has died sends
   no heartbeat, so clients do not command it too early.
 
+* **Readiness**: once its MAVLink sockets are bound and its publishers and subscribers
+  declared, the node holds the readiness token ``skyloop/<vehicle>/ready/bridge``
+  (``bus.node.Bus.declare_ready``), what ``skyloop up`` waits on; gone on :meth:`close`.
+  Ready is not present: it sends no heartbeat until the sim's status comes.
+
 The link's clock is the bridge's wall clock (seconds since it started).
 """
 
@@ -197,6 +202,9 @@ class BridgeNode:
         self.published = 0
         self.resends = 0
         self.statustexts = 0
+        # The MAVLink sockets bound (VehicleLink), publishers and subscribers declared:
+        # what ``skyloop up`` waits on (the token ``skyloop/<vehicle>/ready/bridge``).
+        self.ready = bus.declare_ready(vehicle, "bridge")
 
     def _push(self, topic: str, msg: Any) -> None:
         """Zenoh's callback: queue the message; a full queue drops its oldest."""
@@ -317,6 +325,8 @@ class BridgeNode:
                 "command_timeouts": self.commander.timeouts, "dropped": self.dropped}
 
     def close(self) -> None:
+        """Drop the readiness token, close the MAVLink links and the wake-up pipe."""
+        self.ready.close()
         self.link.close()
         for fd in (self._wake_r, self._wake_w):
             os.close(fd)

@@ -6,7 +6,9 @@ one header stamp (the simulator's stack time); the node joins them by stamp, so 
 arrival order does not matter, and publishes ``observation`` (35 values, one frame,
 with the episode and step) through :func:`perception.observation.observation_from_scan`,
 the same function the in-process env calls. Zenoh callbacks only enqueue; one worker
-thread does the work.
+thread does the work. Once subscribed, with its publisher declared and its worker
+running, the node holds the readiness token ``skyloop/<vehicle>/ready/perception``
+(``bus.node.Bus.declare_ready``), what ``skyloop up`` waits on; gone on :meth:`close`.
 
 Parameters (``skyloop/<vehicle>/params``, set by a ground station through the bridge):
 ``SKY_ICO_RADIUS`` replaces the icosahedron radius (eq. 3.1's p_radius) from the next
@@ -73,6 +75,9 @@ class PerceptionNode:
             bus.subscribe(topic, vehicle, lambda msg, t=topic: self._offer(t, msg))
         self._thread = threading.Thread(target=self._run, name="perception", daemon=True)
         self._thread.start()
+        # Subscribed, the publisher declared, the worker running: what ``skyloop up``
+        # waits on (the readiness token ``skyloop/<vehicle>/ready/perception``).
+        self.ready = bus.declare_ready(vehicle, "perception")
 
     def _offer(self, topic: str, msg: Any) -> None:
         """Zenoh's callback: queue the message, or count it dropped if the queue is full."""
@@ -165,6 +170,8 @@ class PerceptionNode:
 
     def close(self) -> None:
         """Stop the worker (what is still queued is dropped); close the bus after this,
-        so that the worker never publishes on a closed publisher."""
+        so that the worker never publishes on a closed publisher. The readiness token
+        goes first: a node that is stopping is not ready."""
+        self.ready.close()
         self._stop.set()
         self._thread.join(timeout=5.0)

@@ -9,11 +9,15 @@ client mode.
 
 Start: [router, until it listens], then every node at once; the sim warms up and flies its
 ground phase (the vehicle on the ground, its commander answering requests) until "go" on its
-stdin, which it gets once [record] subscribed and the policy reported OFFBOARD (arm, takeoff
+stdin, which it gets once every node is ready, the policy in OFFBOARD (arm, takeoff
 and offboard done the MAVSDK way, through the bridge to the sim's commander); then it runs
-the episodes. Readiness comes over the bus, not stdout: each of those nodes declares the
-Zenoh liveliness token ``skyloop/<vehicle>/ready/<node>`` when ready
-(``bus.node.Bus.declare_ready``), and the launcher's own session watches them. In lockstep
+the episodes. Readiness comes over the bus, not stdout: every node declares the Zenoh
+liveliness token ``skyloop/<vehicle>/ready/<node>`` when ready
+(``bus.node.Bus.declare_ready``: perception subscribed and publishing, the bridge's
+MAVLink sockets bound and its bus side up, the recorder and viewer subscribed, the sim
+warmed up in its ground phase, the policy in OFFBOARD), and the launcher's own session
+watches them; "go" waits for every one of :func:`ready_waits` (the router, started
+first, is waited for until its endpoint accepts connections). In lockstep
 every episode is the same as in the in-process env. ``--policy none``: no policy process;
 the sim runs free flight in real time (the vehicle waits on the ground, disarmed, for a
 ground station; an episode is one goal), until stopped or ``--episodes`` goals (default:
@@ -74,6 +78,11 @@ SUMMARY_LINE = "SKYLOOP-SUMMARY "
 COUNTERS_LINE = "SKYLOOP-COUNTERS "
 READY_LINE = "SKYLOOP-POLICY-READY"
 SIM_READY_LINE = "SKYLOOP-SIM-READY"
+#: the nodes that hold a readiness token (``skyloop/<vehicle>/ready/<node>``), in the
+#: order the launcher waits for them, and how long it waits for each (s)
+READY_NODES = ("sim", "policy", "perception", "bridge", "record", "viz")
+READY_TIMEOUT_S = {"sim": 120.0, "policy": 120.0, "perception": 60.0, "bridge": 60.0,
+                   "record": 60.0, "viz": 60.0}
 STARTED_LINE = "started {name} (pid {pid})"  # one a child, and again on each restart
 GRACE_S = 3.0
 #: the nodes ``--restart on-failure`` starts again, and the nodes each one's restart
@@ -166,7 +175,8 @@ class Graph:
         self.summary: dict | None = None
         self.log_path: str | None = None
         self.counters: dict[str, collections.Counter[str]] = {}  # node -> its last line's
-        self.ready = {name: threading.Event() for name in ("policy", "record", "sim", "viz")}
+        #: node -> set while its readiness token is on the bus (:meth:`on_ready`)
+        self.ready = {name: threading.Event() for name in READY_NODES}
         self.restarts: collections.Counter[str] = collections.Counter()
         self.cpu_at_go: dict[int, float] = {}  # pid -> CPU seconds when "go" was sent
         self.cpu_at_end: dict[int, float] | None = None  # ... as the sim's summary came
@@ -242,9 +252,10 @@ class Graph:
 
     def on_ready(self, node: str, alive: bool) -> None:
         """A node's readiness token appeared (or went): the bus, not its stdout, says
-        when it is ready (``bus.node.Bus.declare_ready``)."""
-        if alive and node in self.ready:
-            self.ready[node].set()
+        when it is ready (``bus.node.Bus.declare_ready``); a token gone (the node
+        stopped or died) clears it."""
+        if node in self.ready:
+            (self.ready[node].set if alive else self.ready[node].clear)()
 
     def dead(self, exclude: str | None = None) -> Child | None:
         """The first child (other than ``exclude``) that has exited, if any."""
@@ -382,7 +393,7 @@ def run_up(args: UpCommand) -> int:
             env.update(SKYLOOP_ZENOH_MODE="peer", SKYLOOP_ZENOH_HUB=endpoint)
             env.pop("SKYLOOP_ZENOH_CONNECT", None)
         # Everything starts at once (imports take seconds); the sim warms up, then waits
-        # for "go" until the recorder subscribed and the policy is in OFFBOARD.
+        # for "go" until every node's readiness token is on the bus (ready_waits).
         if args.log_dir:
             graph.start("record", ["record", "--out", str(args.log_dir), "--vehicle",
                                    args.vehicle, "--split-episodes",
@@ -401,10 +412,7 @@ def run_up(args: UpCommand) -> int:
         bus = Bus.open(replace(SessionConfig.from_env(env), config_file=str(
             graph.zenoh_configs / "launcher.json5")) if secure else SessionConfig.from_env(env))
         bus.watch_ready(args.vehicle, graph.on_ready)  # this stack's vehicle only
-        waits = [("sim", 120.0)] + ([("record", 60.0)] if args.log_dir else []) + \
-            ([("viz", 60.0)] if args.viz else []) + \
-            ([("policy", 120.0)] if args.policy != "none" else [])
-        for name, timeout in waits:
+        for name, timeout in ready_waits(args):
             if (c := graph.wait_for(graph.ready[name], name, timeout)) is not None:
                 return _died(graph, c)
         assert sim.proc.stdin is not None
@@ -473,6 +481,14 @@ def nodes_of(args: UpCommand) -> list[str]:
     return [*(["record"] if args.log_dir else []), *(["viz"] if args.viz else []),
             "perception", "bridge",
             *(["policy"] if args.policy != "none" else []), "sim"]
+
+
+def ready_waits(args: UpCommand) -> list[tuple[str, float]]:
+    """The readiness tokens ``skyloop up`` waits for before "go", in order, each with
+    its timeout (s, from when the wait for it starts): one per node of
+    :func:`nodes_of`, the slowest starters (the sim warms up, the policy loads torch and
+    takes off) first."""
+    return [(n, READY_TIMEOUT_S[n]) for n in sorted(nodes_of(args), key=READY_NODES.index)]
 
 
 def _wait_listening(endpoint: str, child: Child, timeout: float) -> bool:

@@ -125,7 +125,7 @@ def flying():
         sim = graph.start("sim", ["sim", "--episodes", "1000", "--max-steps", "100000",
                                   "--lockstep-timeout", "0.5", "--wait-go", *PARAMS],
                           stdin=subprocess.PIPE)
-        for name in ("sim", "policy"):
+        for name in ("sim", "policy", "perception", "bridge"):  # every node's token
             assert graph.wait_for(graph.ready[name], name, 120.0) is None, name
         sim.proc.stdin.write("go\n")
         sim.proc.stdin.flush()
