@@ -31,6 +31,8 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from bus.task import TASK, TaskSpec
+
 MSG_DIR = Path(__file__).resolve().parent / "msg"
 PROJECT_PACKAGE = "skyloop_msgs"
 
@@ -417,11 +419,25 @@ def observation_values(msg: Any) -> np.ndarray:
 
 
 def episode_start(episode: int, seed: int, start: Sequence[float], goal: Sequence[float],
-                  stamp_s: float, scenario: str = "") -> Any:
-    """``EpisodeEvent`` START with the seed, start and goal positions (world ENU)."""
+                  stamp_s: float, scenario: str = "", task: TaskSpec = TASK) -> Any:
+    """``EpisodeEvent`` START with the seed, start and goal positions (world ENU) and the
+    episode limits of ``task`` it runs under (``max_steps`` inf: no limit, recorded 0)."""
+    steps = 0 if math.isinf(task.max_steps) else int(task.max_steps)
     return EpisodeEvent(header=header(stamp_s, "world"), event=START, episode=int(episode),
                         seed=int(seed), scenario=scenario, start=_vec3(start, Point),
-                        goal=_vec3(goal, Point), outcome=OUTCOMES["none"], steps=0)
+                        goal=_vec3(goal, Point), outcome=OUTCOMES["none"], steps=0,
+                        max_steps=steps, goal_radius=float(task.goal_radius),
+                        goal_max_altitude=float(task.goal_max_altitude))
+
+
+def episode_limits(msg: Any) -> dict[str, float] | None:
+    """The episode limits an ``EpisodeEvent`` START records (``bus.task.EPISODE_LIMITS``;
+    ``max_steps`` inf when unlimited), None when it records none (goal_radius 0)."""
+    if not msg.goal_radius > 0.0:
+        return None
+    return {"max_steps": float(msg.max_steps) if msg.max_steps else math.inf,
+            "goal_radius": float(msg.goal_radius),
+            "goal_max_altitude": float(msg.goal_max_altitude)}
 
 
 def episode_end(episode: int, outcome: str, steps: int, stamp_s: float,
@@ -432,7 +448,8 @@ def episode_end(episode: int, outcome: str, steps: int, stamp_s: float,
     zero = Point(x=0.0, y=0.0, z=0.0)
     return EpisodeEvent(header=header(stamp_s, "world"), event=END, episode=int(episode),
                         seed=int(seed), scenario=scenario, start=zero, goal=zero,
-                        outcome=OUTCOMES[outcome], steps=int(steps))
+                        outcome=OUTCOMES[outcome], steps=int(steps), max_steps=0,
+                        goal_radius=0.0, goal_max_altitude=0.0)
 
 
 def outcome_name(msg: Any) -> str:

@@ -19,7 +19,14 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-__all__ = ["TASK", "TaskSpec", "episode_outcome"]
+__all__ = ["EPISODE_LIMITS", "OUTCOME_LIMITS", "TASK", "TaskSpec", "episode_outcome"]
+
+#: The limits an episode runs under, recorded in its log (``EpisodeEvent`` START).
+EPISODE_LIMITS = ("max_steps", "goal_radius", "goal_max_altitude")
+#: Those of them that decide success, hence the terminal flag and the goal reward of a
+#: logged episode: a learner trains only on episodes run under its own. (``max_steps``
+#: only truncates, which is not terminal: any value serves.)
+OUTCOME_LIMITS = ("goal_radius", "goal_max_altitude")
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,15 @@ class TaskSpec:
         if steps >= self.max_steps:
             return "timeout"
         return None
+
+    def limits_mismatch(self, recorded: dict[str, float] | None) -> str | None:
+        """Why an episode run under the ``recorded`` limits (``bus.messages.episode_limits``)
+        cannot train under this task, or None when it can (the same ``OUTCOME_LIMITS``)."""
+        if recorded is None:
+            return "its START records no episode limits (goal_radius 0)"
+        diff = [f"{name} {recorded[name]:g} (this task: {getattr(self, name):g})"
+                for name in OUTCOME_LIMITS if recorded[name] != getattr(self, name)]
+        return "run under " + ", ".join(diff) if diff else None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -50,10 +50,10 @@ class EpisodeRunner:
             self.commander.place(clock.now(), airborne=True, mode=self.step.resume)
         else:
             s.new_goal(goal)
-        self.pub[keys.EPISODE].put(m.episode_start(i, seed, s.start, s.goal, clock.stamp(),
-                                                   s.world_name))  # NAME#SEED if drawn
         task = replace(TASK, max_steps=math.inf if c.free_flight else c.max_steps,
                        goal_radius=c.goal_radius, goal_max_altitude=c.goal_max_altitude)
+        self.pub[keys.EPISODE].put(m.episode_start(i, seed, s.start, s.goal, clock.stamp(),
+                                                   s.world_name, task))  # NAME#SEED if drawn
         path = [s.vehicle.truth.position.copy()]
         flown = False  # the episode has flown OFFBOARD (seeded: it is placed in OFFBOARD)
         missed = self.gate.missed

@@ -91,6 +91,27 @@ def test_observations_must_say_how_they_were_scaled():
             transitions_from_steps(steps, RewardConfig())
 
 
+def test_an_episode_run_under_other_goal_limits_is_refused():
+    """START records the goal limits the sim ran the episode under; the assembler keeps
+    them and a learner of the default task refuses an episode flown to a 3-m radius by
+    name (its success would mean something else), while a learner of that task takes it."""
+    from dataclasses import replace
+
+    from bus.task import TASK
+
+    wide = replace(TASK, goal_radius=3.0)
+    msgs = episode_messages(0, 4, 0, "success")
+    msgs[0] = (keys.EPISODE, m.episode_start(0, 7, (0, 0, 3.5), (10.0, 5.0, 3.5), 0.0,
+                                             task=wide))
+    asm = EpisodeAssembler()
+    feed(asm, "uav1", msgs)
+    [(_, _, steps)] = asm.poll(0.0)
+    assert steps.limits == {"max_steps": 300.0, "goal_radius": 3.0, "goal_max_altitude": 6.0}
+    with pytest.raises(ValueError, match=r"run under goal_radius 3 \(this task: 2\)"):
+        transitions_from_steps(steps, RewardConfig())
+    assert transitions_from_steps(steps, RewardConfig(), wide).reached
+
+
 def test_late_command_after_end_is_joined_by_stamp():
     msgs = episode_messages(0, 3, 10)
     last_cmd = [i for i, (t, _) in enumerate(msgs) if t == keys.CMD_VEL][-1]

@@ -94,6 +94,51 @@ def test_rewards_use_the_scaling_the_log_records(tmp_path):
                                    atol=1e-4)
 
 
+def test_training_takes_the_goal_limits_the_log_records(tmp_path):
+    """A log flown under a 3-m goal radius trains under it (the summary and the actor
+    record it); episodes of another log, flown under the default 2 m, are refused and
+    counted with the reason, never trained on as if they meant the same success."""
+    from policy.algorithms.td3 import load_actor
+    from policy.training.env import EnvConfig
+
+    wide = log_env_episodes(UavNavEnv(scenario="valley", config=EnvConfig(goal_radius=3.0)),
+                            StraightLineController(), 2, SEED, tmp_path / "wide")
+    default = log_env_episodes(UavNavEnv(scenario="valley"), StraightLineController(), 2,
+                               SEED, tmp_path / "default")
+    summary = train_from_logs([wide, default], tmp_path / "run", reward="tr", updates=2)
+    assert summary["episodes_used"] == 2 and summary["task"]["goal_radius"] == 3.0
+    assert summary["skipped"] == {"inconsistent: episode run under goal_radius 2 "
+                                  "(this task: 3)": 2}
+    assert load_actor(tmp_path / "run" / "actor.pt").trained_task.goal_radius == 3.0
+    buf = ReplayBuffer(1000, (3, 35), 4)  # the default log alone trains under 2 m
+    report = load_logs([default], buf, make_goal_reward("tr", RewardConfig()), RewardConfig())
+    assert report.episodes_used == 2 and report.task.goal_radius == 2.0
+
+
+def test_an_episode_without_recorded_limits_is_refused(logged, tmp_path):
+    """A log whose START records no episode limits (goal_radius 0: written by another
+    tool, or before the field existed) is refused with the reason, not trained under an
+    assumed task."""
+    from bus import keys
+    from bus.log import EpisodeLogWriter
+
+    path, _ = logged
+    episodes, _ = read_episodes(path)
+    w = EpisodeLogWriter(tmp_path, run_name="nolimits")
+    for ep in episodes[:1]:
+        for msg in ep.messages:
+            decoded = msg.decode()
+            if msg.name == keys.EPISODE and decoded.event == 0:  # START
+                decoded.goal_radius = 0.0
+            w.write_msg(ep.vehicle, msg.name, decoded, log_time_ns=msg.log_time_ns)
+    w.close()
+    buf = ReplayBuffer(1000, (3, 35), 4)
+    report = load_logs([w.dir], buf, make_goal_reward("tr", RewardConfig()), RewardConfig())
+    assert report.episodes_used == 0 and report.task is None
+    assert report.skipped == {"inconsistent: episode its START records no episode limits "
+                              "(goal_radius 0)": 1}
+
+
 def test_a_split_run_directory_is_read_whole(tmp_path):
     path = log_env_episodes(UavNavEnv(scenario="valley"), StraightLineController(), 3, SEED,
                             tmp_path, split_episodes=1)

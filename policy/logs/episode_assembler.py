@@ -51,6 +51,7 @@ class _Open:
     goal: np.ndarray
     start_stamp: int
     shared_start: bool  # the previous episode ended at start_stamp: its pose is first
+    limits: dict | None = None  # the episode limits START records
     end_stamp: int = 0
     steps: int = 0
     outcome: str = ""
@@ -133,7 +134,7 @@ class EpisodeAssembler:
             stamp = m.nanoseconds(msg.header.stamp)
             v.open = _Open(int(msg.episode), int(msg.seed),
                            np.array([msg.goal.x, msg.goal.y, msg.goal.z], np.float64),
-                           stamp, v.last_end_stamp == stamp)
+                           stamp, v.last_end_stamp == stamp, m.episode_limits(msg))
         elif msg.event == m.END:
             ep, v.open = v.open, None
             v.last_end_stamp = m.nanoseconds(msg.header.stamp)
@@ -183,7 +184,8 @@ class EpisodeAssembler:
         obs = {k: o[0] for k, o in got.items() if o is not None}
         scalings = [o[1] for o in got.values() if o is not None]
         truth = [v.truth[stamps[0]][first]] + [v.truth[s][0] for s in stamps[1:]]
-        return EpisodeSteps(ep.goal, T, ep.outcome, obs, truth, actions, scalings), None
+        return EpisodeSteps(ep.goal, T, ep.outcome, obs, truth, actions, scalings,
+                            ep.limits), None
 
     def _forget(self, v: _Vehicle, index: int, stamp: int) -> None:
         """Drop the observations of episodes up to ``index`` and the poses and commands

@@ -38,7 +38,8 @@ def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_
     for i in range(episodes):
         state, info = env.reset(seed=seed + i)
         scenario = base.config.episode.scenario
-        put(EPISODE, m.episode_start(i, seed + i, base.start, base.goal, 0.0, scenario), 0.0)
+        put(EPISODE, m.episode_start(i, seed + i, base.start, base.goal, 0.0, scenario,
+                                     base.task), 0.0)
         k, t = 0, 0.0
 
         def snapshot(episode: int, step: int, t_s: float, latest: np.ndarray) -> None:

@@ -3,7 +3,9 @@
 An episode log (``bus.log``, MCAP with ROS 2 schemas) holds, per vehicle and episode,
 the messages this module rebuilds transitions from (the *log contract*):
 
-- ``episode`` START (seed, start, goal) and END (outcome, steps T);
+- ``episode`` START (seed, start, goal, the episode limits it runs under) and END
+  (outcome, steps T); training takes the first usable episode's limits as its task
+  (recorded in the actor file) and refuses, counted, episodes run under other goal limits;
 - ``observation``: one 35-attribute observation per step, ``step`` = 0 .. T, each with
   the scaling it was made with (``Observation.msg``; an episode whose observations do
   not record it, or record two, is refused and counted);
@@ -28,7 +30,8 @@ lambda = alpha / mean|Q|, alpha = 2.5) instead of plain TD3.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +42,7 @@ from tqdm import tqdm
 from bus.log import read_episodes
 from bus.log_reader import EpisodeLogReader, log_files
 from bus.messages import (
+    episode_limits,
     is_action,
     nanoseconds,
     observation_scaling,
@@ -46,7 +50,7 @@ from bus.messages import (
     odometry_values,
     setpoint_values,
 )
-from bus.task import TASK
+from bus.task import TASK, TaskSpec
 from policy.algorithms.agents import make_goal_reward
 from policy.algorithms.replay import ReplayBuffer
 from policy.algorithms.rewards import RewardConfig
@@ -69,6 +73,7 @@ class LogReport:
     transitions: int = 0
     skipped: dict[str, int] = field(default_factory=dict)  # reason -> count
     files: list[str] = field(default_factory=list)
+    task: TaskSpec | None = None  # what the episodes used were run under
 
     def skip(self, reason: str) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
@@ -107,16 +112,29 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None,
         actions = [commands[t] for t in stamps[:T] if t in commands]
     return EpisodeSteps(goal, T, episode.outcome, obs,
                         [odometry_values(t) for t in truth_msgs], actions,
-                        [observation_scaling(o) for o in obs_msgs])
+                        [observation_scaling(o) for o in obs_msgs], episode_limits(start))
 
 
 def rebuild_episode(episode, config: RewardConfig,
                     commands: dict[int, tuple] | None = None,
-                    observations: dict[tuple[Any, int, int], Any] | None = None
-                    ) -> Transitions:
-    """Transitions of one complete logged episode; ``ValueError`` names what does not
-    fit (:func:`episode_steps`, then :func:`policy.logs.transitions.transitions_from_steps`)."""
-    return transitions_from_steps(episode_steps(episode, commands, observations), config)
+                    observations: dict[tuple[Any, int, int], Any] | None = None,
+                    task: TaskSpec = TASK) -> Transitions:
+    """Transitions of one complete logged episode for a learner of ``task``;
+    ``ValueError`` names what does not fit (:func:`episode_steps`, then
+    :func:`policy.logs.transitions.transitions_from_steps`)."""
+    return transitions_from_steps(episode_steps(episode, commands, observations), config,
+                                  task)
+
+
+def task_of(limits: dict[str, float] | None) -> TaskSpec | None:
+    """The task a log's episode was run under: ``TASK`` with its recorded episode limits
+    (None when it records none)."""
+    if limits is None:
+        return None
+    steps = limits["max_steps"]
+    return replace(TASK, max_steps=TASK.max_steps if math.isinf(steps) else int(steps),
+                   goal_radius=limits["goal_radius"],
+                   goal_max_altitude=limits["goal_max_altitude"])
 
 
 def file_observations(path: Path) -> dict[tuple[Any, int, int], Any]:
@@ -148,11 +166,13 @@ def body_commands(path: Path) -> dict[int, tuple]:
 
 
 def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
-              config: RewardConfig) -> LogReport:
+              config: RewardConfig, task: TaskSpec | None = None) -> LogReport:
     """Fill ``buffer`` with every complete episode of ``paths`` (MCAP files, or run
     directories: their ``*.mcap`` files in order, e.g. a log split every N episodes);
-    count what is skipped."""
-    report = LogReport()
+    count what is skipped. The episodes train under ``task``, or (None) under the task the
+    first usable episode records (``report.task``); an episode run under other goal
+    limits is skipped, counted with its reason."""
+    report = LogReport(task=task)
     files = [f for p in map(Path, paths) for f in (log_files(p) if p.is_dir() else [p])]
     for path in files:
         report.files.append(str(path))
@@ -175,7 +195,10 @@ def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
                 report.skip(f"incomplete: {ep.problem}")
                 continue
             try:
-                tr = rebuild_episode(ep, config, commands, observations)
+                steps = episode_steps(ep, commands, observations)
+                if report.task is None:  # the first episode's task is the run's
+                    report.task = task_of(steps.limits)
+                tr = transitions_from_steps(steps, config, report.task or TASK)
             except (ValueError, AttributeError) as exc:
                 report.skip(f"inconsistent: {exc}")
                 continue
@@ -212,19 +235,20 @@ def train_from_logs(paths: list[Path], out: Path, reward: str = "abr", updates: 
     buffer = ReplayBuffer(1_000_000, (FRAMES, OBS_DIM), TASK.action_dim, seed=seed)
     goal_reward = make_goal_reward(reward, config, seed=seed)
     report = load_logs(paths, buffer, goal_reward, config)
+    task = report.task or TASK
     summary = {"episodes_used": report.episodes_used, "transitions": report.transitions,
                "skipped": report.skipped, "files": report.files, "reward": reward,
-               "algo": "td3+bc" if bc else "td3", "updates": 0}
+               "algo": "td3+bc" if bc else "td3", "updates": 0, "task": task.to_dict()}
     if report.transitions == 0:
         why = "; ".join(f"{reason} (x{n})" if n > 1 else reason
                         for reason, n in report.skipped.items()) or "no episodes in them"
         raise ValueError(f"no usable episodes in {', '.join(map(str, paths))}: {why}")
     agent = (TD3BC if bc else TD3)(TD3Config(seed=seed))
-    agent.task = TASK.to_dict()  # recorded in its actor file
+    agent.task = task.to_dict()  # the logs' task, recorded in its actor file
     if init_actor is not None:
         from policy.algorithms.td3 import load_actor
 
-        agent.actor.load_state_dict(load_actor(init_actor, task=TASK).state_dict())
+        agent.actor.load_state_dict(load_actor(init_actor, task=task).state_dict())
         agent.actor_target.load_state_dict(agent.actor.state_dict())
     with flush_denormals():  # Adam's moments of dead units: see policy.algorithms.td3
         for _ in tqdm(range(updates), unit="upd",

@@ -7,6 +7,8 @@ steps has the goal (from START), the outcome and ``T`` (from END), one 35-attrib
 observation per step 0 .. T-1 (step T when the log has it), the true pose per step
 0 .. T, and the policy's body-frame action of each step 0 .. T-1.
 
+Episodes are taken only under the goal limits they were run with: START records them
+(``EpisodeEvent``), and one run under another goal radius or altitude is refused.
 Rewards are recomputed, never read: eq. 3.5 from the truth distances and altitude and
 the observation's h, g, un-scaled with the scaling the observations record (the
 perception's ``ObservationConfig``; stored in float32, so recomputed rewards agree with
@@ -23,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from bus.messages import yaw_of
-from bus.task import TASK
+from bus.task import TASK, TaskSpec
 from perception.observation import (
     FrameStacker,
     ObservationConfig,
@@ -52,6 +54,7 @@ class EpisodeSteps:
     truth: list[Pose]  # T + 1 poses
     actions: list[tuple[float, float, float, float]]  # T body-frame actions
     scalings: list[dict[str, Any] | None]  # what each observation records (None: nothing)
+    limits: dict[str, float] | None = None  # what START records (bus.messages.episode_limits)
 
 
 @dataclass
@@ -94,11 +97,18 @@ def one_scaling(scalings: list[dict[str, Any] | None]) -> ObservationConfig:
     return config_from_scaling(recorded[0])
 
 
-def transitions_from_steps(ep: EpisodeSteps, config: RewardConfig) -> Transitions:
-    """Transitions of one complete episode; ``ValueError`` names what does not fit."""
+def transitions_from_steps(ep: EpisodeSteps, config: RewardConfig,
+                           task: TaskSpec = TASK) -> Transitions:
+    """Transitions of one complete episode for a learner of ``task``; ``ValueError`` names
+    what does not fit, including an episode run under other goal limits than ``task``'s
+    (``TaskSpec.limits_mismatch``: its success, terminal flag and goal reward would mean
+    something else)."""
     T, obs, truth = ep.steps, dict(ep.observations), ep.truth
     if T is None or T < 1:
         raise ValueError("no steps")
+    why = task.limits_mismatch(ep.limits)
+    if why is not None:
+        raise ValueError(f"episode {why}")
     scaling = one_scaling(ep.scalings)
     if ep.outcome not in OUTCOMES:
         raise ValueError(f"outcome {ep.outcome!r}")
