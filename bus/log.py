@@ -1,7 +1,7 @@
 """The episode log: MCAP files with ROS 2 schemas, in a rosbag2 directory.
 
 Layout: ``<out_dir>/<run>/<run>_0.mcap`` (and ``_1``, ``_2``, ... when split every N
-episodes) plus ``metadata.yaml`` (rosbag2 version 5, the
+episodes or M minutes) plus ``metadata.yaml`` (rosbag2 version 5, the
 format ROS 2 Humble writes, storage ``mcap``), so ``ros2 bag info/play <run>``,
 ``rosbags`` (the directory or the ``.mcap`` itself), Foxglove and the ``mcap`` CLI all
 open it. MCAP profile ``ros2``, schema encoding ``ros2msg`` (the full concatenated
@@ -30,11 +30,13 @@ re-exported here.
 from __future__ import annotations
 
 import functools
+import math
 import os
 import re
 import socket
 import time
 from collections import defaultdict
+from collections.abc import Callable
 from io import StringIO
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -121,7 +123,7 @@ def default_run_name() -> str:
 
 class EpisodeLogWriter:
     """Write one run to ``<out_dir>/<run_name>/<run_name>_0.mcap`` (``_1``, ``_2``, ...
-    with ``split_episodes``).
+    with ``split_episodes`` or ``split_minutes``).
 
     ``write(topic, msgtype, data, log_time_ns)`` takes CDR bytes on a ROS 2 topic name
     (``/skyloop/<vehicle>/<topic>``); ``write_msg(vehicle, topic, msg, ...)`` encodes a
@@ -130,7 +132,10 @@ class EpisodeLogWriter:
     episodes have ended in a file and none is open, the file is finished (summary,
     footer, ``metadata.yaml`` rewritten) and the next one begins, as rosbag2's
     ``max_bag_duration`` splits a bag: a file never splits an episode, and a writer that
-    dies loses at most its open file's tail. ``compression``: of each MCAP chunk,
+    dies loses at most its open file's tail. ``split_minutes`` M > 0: the same at the
+    first episode boundary (an END with no episode open) once M minutes of ``clock``
+    (seconds; default ``time.monotonic``, wall time) have passed since the open file
+    began; with both, whichever comes first. ``compression``: of each MCAP chunk,
     ``"zstd"`` (default), ``"lz4"`` or ``"none"``; :mod:`bus.log_reader`, ``rosbags``
     and ``mcap``'s reader read all three (tested). Not thread-safe: one writer thread.
     """
@@ -138,7 +143,8 @@ class EpisodeLogWriter:
     def __init__(self, out_dir: str | os.PathLike[str], run_name: str | None = None, *,
                  chunk_size: int = 2 * 1024 * 1024, compression: str = "zstd",
                  fsync: bool = False, metadata: dict[str, str] | None = None,
-                 split_episodes: int = 0) -> None:
+                 split_episodes: int = 0, split_minutes: float = 0.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         run_name = run_name or default_run_name()
         if not _RUN_NAME_RE.match(run_name):
             raise ValueError(f"run name must match {_RUN_NAME_RE.pattern}: {run_name!r}")
@@ -146,12 +152,16 @@ class EpisodeLogWriter:
             raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}")
         if split_episodes < 0:
             raise ValueError(f"split_episodes must be >= 0, got {split_episodes}")
+        if not (math.isfinite(split_minutes) and split_minutes >= 0):
+            raise ValueError(f"split_minutes must be a finite number >= 0, got {split_minutes}")
         self.run_name = run_name
         self.dir = Path(out_dir) / run_name
         self.dir.mkdir(parents=True, exist_ok=False)
         self._fsync = fsync
         self._chunk_size, self._compression = chunk_size, _COMPRESSION[compression]
         self.split_episodes = split_episodes
+        self.split_s = split_minutes * 60.0
+        self._clock = clock
         self.counts: dict[str, int] = defaultdict(int)  # topic -> messages written
         self._types: dict[str, str] = {}  # topic -> msgtype, over every file
         self.first_ns: int | None = None
@@ -177,6 +187,7 @@ class EpisodeLogWriter:
         self._between_files = False
         self.files.append({"path": self.path.name, "first_ns": None, "last_ns": 0,
                            "message_count": 0, "episodes": 0})
+        self._file_began = self._clock()  # split_minutes counts from here
         self._writer.add_metadata(RUN_METADATA, {**self._run_meta,
                                                  "file": str(len(self.files) - 1)})
         self._file.flush()
@@ -266,11 +277,17 @@ class EpisodeLogWriter:
             "steps": str(int(event.steps)), "messages": str(count)})
         self.flush()
         self.files[-1]["episodes"] += 1
-        if self.split_episodes and not self._open_eps and \
-                self.files[-1]["episodes"] >= self.split_episodes:
+        if not self._open_eps and self._split_due():
             self._finish_file()
             self._write_metadata_yaml()
             self._between_files = True  # the next file begins with the next message
+
+    def _split_due(self) -> bool:
+        """Whether the open file is full: ``split_episodes`` episodes ended in it, or
+        ``split_minutes`` passed since it began (read at episode ends only)."""
+        if self.split_episodes and self.files[-1]["episodes"] >= self.split_episodes:
+            return True
+        return bool(self.split_s) and self._clock() - self._file_began >= self.split_s
 
     def flush(self) -> None:
         """Close the open chunk and hand everything to the OS (``fsync`` if asked)."""

@@ -353,7 +353,7 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
                stop_event: threading.Event | None = None, *, vehicle: str | None = None,
                run_name: str | None = None, compression: str = "zstd",
                queue_size: int = 512, ready: threading.Event | None = None,
-               split_episodes: int = 0, ros_view: bool = True,
+               split_episodes: int = 0, split_minutes: float = 0.0, ros_view: bool = True,
                scenario: str | None = None) -> RecordResult:
     """Record until ``stop_event`` is set (or Ctrl-C); return the run directory and
     counters. ``ready`` is set once the subscriber is declared. ``ros_view``: add the
@@ -366,7 +366,8 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
     try:
         writer = EpisodeLogWriter(out_dir, run_name, compression=compression,
                                   metadata={"vehicle": vehicle or "*", **TIME_METADATA},
-                                  split_episodes=split_episodes)
+                                  split_episodes=split_episodes,
+                                  split_minutes=split_minutes)
         view = None
         if ros_view:
             from bus.ros_scene import SitlScene, WorldWorker

@@ -137,6 +137,10 @@ class RecordCommand(WorldFirstFlag, ZenohFlags):
         "`skyloop bench --only record`, benchmarks/RESULTS.md 2026-12-03)"))] = "zstd"
     split_episodes: Annotated[int, tyro.conf.arg(metavar="N")] = 0
     """a new MCAP file of the run every N episodes, never inside one (0: one file)"""
+    split_minutes: Annotated[float, tyro.conf.arg(metavar="M", help=(
+        "a new MCAP file of the run at the first episode end after M minutes of wall time "
+        "in the current file, never inside an episode (as rosbag2's max-bag-duration; "
+        "0: off; with --split-episodes, whichever comes first)"))] = 0.0
     no_ros_view: Annotated[bool, tyro.conf.arg(help=(
         "only the bus messages: no TF, /clock, world, goal, path or icosahedron topics for "
         "Foxglove and RViz"))] = False
@@ -145,6 +149,9 @@ class RecordCommand(WorldFirstFlag, ZenohFlags):
     def validate(self) -> None:
         super().validate()
         at_least(self, "split_episodes", 0)
+        if not (math.isfinite(self.split_minutes) and self.split_minutes >= 0):
+            raise ConfigError("split_minutes", f"must be 0 (off) or more minutes, got "
+                                               f"{self.split_minutes:g}")
         at_least(self, "queue", 1)
         if self.vehicle is not None:
             from bus.keys import check_vehicle
@@ -324,7 +331,8 @@ def run_record(args: RecordCommand) -> int:
     stop = stop_flag_on_signals()
     result = record(args.out, cfg, stop, vehicle=args.vehicle, run_name=args.run_name,
                     compression=args.compression, queue_size=args.queue,
-                    split_episodes=args.split_episodes, ros_view=not args.no_ros_view,
+                    split_episodes=args.split_episodes, split_minutes=args.split_minutes,
+                    ros_view=not args.no_ros_view,
                     scenario=args.scenario)
     c = result.counters
     print(f"recorded {c['written']} messages ({c['episodes_ended']} episodes ended) into "

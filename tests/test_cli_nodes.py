@@ -49,8 +49,8 @@ FLAGS = {
     "view": ["--vehicle", "--viz", "--scan-every", "--web-port", "--grpc-port"],
     "viz": [*BUS, "--scenario", "--viz", "--scan-every", "--web-port", "--grpc-port"],
     "record": ["--scenario", "--out", "--vehicle", "--run-name", "--compression",
-               "--split-episodes", "--no-ros-view", "--queue", "--mode", "--connect",
-               "--listen", "--zenoh-config", "-v", "--verbose"],
+               "--split-episodes", "--split-minutes", "--no-ros-view", "--queue", "--mode",
+               "--connect", "--listen", "--zenoh-config", "-v", "--verbose"],
     "router": ["--listen", "--zenoh-config"],
     "certs": ["--out", "--nodes", "--host", "--days"],
     "plot": ["--out"],
@@ -218,6 +218,9 @@ BAD = [
      "x"),
     ("experiment report", ["d", "--eval-episodes", "-1"], "--eval-episodes", "-1"),
     ("record", ["--split-episodes", "-1"], "--split-episodes", "-1"),
+    ("record", ["--split-minutes", "-1"], "--split-minutes", "-1"),
+    ("record", ["--split-minutes", "nan"], "--split-minutes", "nan"),
+    ("record", ["--split-minutes", "soon"], "--split-minutes", "soon"),
     ("record", ["--queue", "0"], "--queue", "0"),
     ("record", ["--compression", "bogus"], "--compression", "bogus"),
     ("record", ["--vehicle", "a/b"], "--vehicle", "a/b"),
@@ -240,6 +243,7 @@ def test_a_bad_value_is_one_line_naming_the_flag(capsys, name, argv, bad_flag, v
 
 @pytest.mark.parametrize("argv, bad_flag", [
     (["record", "--split-episodes", "-1"], "--split-episodes"),
+    (["record", "--split-minutes", "-1"], "--split-minutes"),
     (["certs", "--days", "0"], "--days"),
     (["record", "--compression", "bogus"], "--compression"),
 ])
@@ -363,9 +367,10 @@ def test_record_router_and_certs_give_the_settings_they_say(helps):
 
     # what the launcher starts with --log-dir (skyloop.launcher.run_up)
     record = parse_any(["record", "--out", "runs/logs", "--vehicle", "uav2",
-                        "--split-episodes", "3", "--compression", "lz4"])
-    assert (record.out, record.vehicle, record.split_episodes, record.compression) == (
-        Path("runs/logs"), "uav2", 3, "lz4")
+                        "--split-episodes", "3", "--compression", "lz4",
+                        "--split-minutes", "0.5"])
+    assert (record.out, record.vehicle, record.split_episodes, record.compression,
+            record.split_minutes) == (Path("runs/logs"), "uav2", 3, "lz4", 0.5)
     record = parse_any(["record", "--run-name", "k", "--no-ros-view", "--queue", "64", "-v",
                         "--mode", "client", "--connect", "tcp/r:7447", "--zenoh-config", "z"])
     assert (record.run_name, record.no_ros_view, record.queue, record.verbose, record.mode,
@@ -373,7 +378,8 @@ def test_record_router_and_certs_give_the_settings_they_say(helps):
                                                      "tcp/r:7447", "z")
     default = parse_any(["record"])
     assert (default.out, default.vehicle, default.compression, default.split_episodes,
-            default.queue, default.no_ros_view) == (Path("logs"), None, "zstd", 0, 512, False)
+            default.split_minutes, default.queue, default.no_ros_view) == (
+        Path("logs"), None, "zstd", 0, 0.0, 512, False)
     router = parse_any(["router", "--listen", "tls/0.0.0.0:7447", "--zenoh-config", "r.json5"])
     assert (router.listen, router.zenoh_config) == ("tls/0.0.0.0:7447", "r.json5")
     assert parse_any(["router"]).listen is None  # $SKYLOOP_ZENOH_LISTEN or the hub, at run

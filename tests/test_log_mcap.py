@@ -162,6 +162,85 @@ def test_split_every_n_episodes_never_splits_an_episode(tmp_path):
         EpisodeLogWriter(tmp_path, "bad", split_episodes=-1)
 
 
+class FakeClock:
+    """A ``clock`` for the writer: seconds that pass only when the test says so."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _episodes_per_file(run_dir):
+    out = []
+    for f in sorted(run_dir.glob("*.mcap")):
+        episodes, report = read_episodes(f)
+        assert report.clean and all(e.complete for e in episodes), f
+        with open(f, "rb") as fh:  # finished: summary and footer
+            assert make_reader(fh).get_summary() is not None
+        out.append([(e.vehicle, e.index) for e in episodes])
+    return out
+
+
+def test_split_every_m_minutes_at_the_first_episode_end_after_them(tmp_path):
+    """``split_minutes=1``: a file is finished at the first episode end once 60 s of
+    the writer's clock have passed since the file began (its first message), never
+    before and never inside an episode, however long the episode; metadata.yaml lists
+    every file and rosbags reads them as one bag."""
+    clock = FakeClock()
+    with EpisodeLogWriter(tmp_path, "run", split_minutes=1, clock=clock) as w:
+        t = 1_000
+        for ep, at in enumerate((0.0, 59.9, 60.0,  # file 0 began at 0: split after ep 2
+                                 100.0, 159.0, 170.0,  # file 1 began at 100 (ep 3)
+                                 1_000.0)):  # file 2 began at 1000; closed by close()
+            clock.now = at
+            t = write_episode(w, ep, t)
+        assert w.next_file_index == 2
+        # 10 minutes inside episode 7 (one in file 2): still one file, split at its end
+        t = write_episode(w, 7, t, end=False)
+        clock.now = 1_600.0
+        w.write_msg("uav1", keys.EPISODE, m.episode_end(7, "success", STEPS, 1.0), t)
+        assert w.next_file_index == 3 and len(w.files) == 3
+    assert [f.name for f in sorted(w.dir.glob("*.mcap"))] == \
+        ["run_0.mcap", "run_1.mcap", "run_2.mcap"]
+    assert _episodes_per_file(w.dir) == [[("uav1", 0), ("uav1", 1), ("uav1", 2)],
+                                         [("uav1", 3), ("uav1", 4), ("uav1", 5)],
+                                         [("uav1", 6), ("uav1", 7)]]
+    with Rosbag2Reader(w.dir) as bag:
+        assert bag.message_count == 8 * PER_EPISODE
+    for i, bad in enumerate((-1, -0.5, float("nan"), float("inf"))):
+        with pytest.raises(ValueError, match="split_minutes"):
+            EpisodeLogWriter(tmp_path, f"bad{i}", split_minutes=bad)
+
+
+def test_split_minutes_waits_for_every_vehicle_and_counts_with_split_episodes(tmp_path):
+    """Two vehicles: past the minutes, uav1's episode end does not split while uav2's
+    episode is open; uav2's end does. With ``split_episodes`` too, whichever comes
+    first splits."""
+    clock = FakeClock()
+    with EpisodeLogWriter(tmp_path, "two", split_minutes=1, clock=clock) as w:
+        t = write_episode(w, 0, 1_000, vehicle="uav2", end=False)  # uav2's episode opens
+        clock.now = 61.0
+        t = write_episode(w, 0, t, vehicle="uav1")  # uav1's ends past 60 s: uav2's open
+        assert w.next_file_index == 0
+        w.write_msg("uav2", keys.EPISODE, m.episode_end(0, "success", STEPS, 1.0), t)
+        assert w.next_file_index == 1  # every episode closed: the split
+        t = write_episode(w, 1, t + 1, vehicle="uav1")
+    assert _episodes_per_file(w.dir) == [[("uav1", 0), ("uav2", 0)], [("uav1", 1)]]
+
+    clock = FakeClock()
+    with EpisodeLogWriter(tmp_path, "both", split_minutes=1, split_episodes=3,
+                          clock=clock) as w:
+        t = 1_000
+        for ep, at in enumerate((0.0, 61.0,  # 2 episodes in 61 s: split by time
+                                 70.0, 71.0, 72.0,  # 3 in 2 s: split by count
+                                 80.0)):
+            clock.now = at
+            t = write_episode(w, ep, t)
+    assert [len(f) for f in _episodes_per_file(w.dir)] == [2, 3, 1]
+
+
 # ------------------------------------------------------------------ episodes
 def test_reader_groups_episodes(tmp_path):
     eps, rep = read_episodes(make_run(tmp_path))
