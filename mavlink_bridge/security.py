@@ -30,16 +30,16 @@ links and the offboard client), through :class:`LinkSecurity` handed to
 * **Binding**: loopback unless ``expose`` is set; :func:`check_bind` refuses any other
   local address with a clear error. :func:`bind_host` gives the address to bind.
 
-Command-line glue for the nodes: :func:`add_security_args` (``--signing-key-file``,
-``--allow-sysid N`` repeatable, ``--expose``; the key may also come from the
-environment variable ``SKYLOOP_MAVLINK_KEY``) and :func:`security_from_args`. A key
+Command-line glue for the nodes: :func:`security_from_args` turns their flags
+(``--signing-key-file``, ``--allow-sysid N`` repeatable, ``--expose``:
+``skyloop.stack_settings.SecurityFlags``; the key may also come from the environment
+variable ``SKYLOOP_MAVLINK_KEY``) into a :class:`LinkSecurity`. A key
 is 64 hex digits (the 32 bytes) or a passphrase, hashed with SHA-256 as MAVProxy's
 ``signing setup`` does, so the same passphrase works in MAVProxy.
 """
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import hmac
 import ipaddress
@@ -269,21 +269,10 @@ def load_key(path: Path | None, env: Mapping[str, str] | None = None) -> bytes |
     return key_from_text(value) if value else None
 
 
-def add_security_args(parser: argparse.ArgumentParser) -> None:
-    """``--signing-key-file``, ``--allow-sysid`` (repeatable), ``--expose``."""
-    g = parser.add_argument_group("MAVLink security")
-    g.add_argument("--signing-key-file", type=Path, default=None, metavar="PATH",
-                   help="MAVLink 2 signing key: 64 hex digits or a passphrase (SHA-256, as "
-                        f"MAVProxy) or 32 raw bytes; default: ${KEY_ENV}, else no signing")
-    g.add_argument("--allow-sysid", type=int, action="append", default=None, metavar="N",
-                   help="only this system id may send commands and setpoints (repeatable)")
-    g.add_argument("--expose", action="store_true",
-                   help="allow binding MAVLink beyond 127.0.0.1 (e.g. --bind 0.0.0.0)")
-
-
-def security_from_args(args: argparse.Namespace,
-                       env: Mapping[str, str] | None = None) -> LinkSecurity:
-    """The :class:`LinkSecurity` the flags of :func:`add_security_args` ask for."""
+def security_from_args(args: Any, env: Mapping[str, str] | None = None) -> LinkSecurity:
+    """The :class:`LinkSecurity` a node's security flags ask for (``signing_key_file``,
+    ``allow_sysid``, ``expose``: ``skyloop.stack_settings.SecurityFlags``; missing
+    ones are off)."""
     allow = getattr(args, "allow_sysid", None)
     return LinkSecurity(secret_key=load_key(getattr(args, "signing_key_file", None), env),
                         allow_sysids=None if not allow else frozenset(allow),

@@ -32,6 +32,7 @@ import math
 
 import numpy as np
 
+from bus.task import TASK
 from sitl.world import World
 
 __all__ = ["FastRenderer"]
@@ -231,14 +232,15 @@ class FastRenderer:
     and the map's face ring are drawn only with them); ``face_scale`` is the face value
     drawn darkest (the radius for the "distance" encoding, 1 for "proximity"). The
     strip charts span ``max_steps`` control steps; ``goal_radius`` and
-    ``goal_max_altitude`` are drawn as reference lines.
+    ``goal_max_altitude`` are drawn as reference lines (defaults: ``bus.task.TASK``'s).
     """
 
     def __init__(self, world: World, size: tuple[int, int] = (640, 480), *,
-                 face_normals: np.ndarray | None = None, face_scale: float = 4.0,
-                 ico_radius: float = 4.0, max_steps: int = 300, goal_radius: float = 2.0,
-                 goal_max_altitude: float = 6.0, lidar_range: float = 4.5,
-                 pad: float = 2.5) -> None:
+                 face_normals: np.ndarray | None = None,
+                 face_scale: float = TASK.ico_radius, ico_radius: float = TASK.ico_radius,
+                 max_steps: int = TASK.max_steps, goal_radius: float = TASK.goal_radius,
+                 goal_max_altitude: float = TASK.goal_max_altitude,
+                 lidar_range: float = 4.5, pad: float = 2.5) -> None:
         width, height = int(size[0]), int(size[1])
         if height < 160 or width - height < 120:
             raise ValueError(f"size must leave a side panel: width >= height + 120 and "

@@ -8,7 +8,6 @@ against an independent implementation in both directions.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import os
 import socket
@@ -32,7 +31,6 @@ from mavlink_bridge.security import (  # noqa: E402
     KEY_ENV,
     LinkSecurity,
     SigningMAVLink,
-    add_security_args,
     bind_host,
     key_from_text,
     security_from_args,
@@ -285,27 +283,32 @@ class _Idle:
 
 # ------------------------------------------------------------------ command line
 def test_cli_flags_key_file_env_and_passphrase(tmp_path) -> None:
-    parser = argparse.ArgumentParser()
-    add_security_args(parser)
-    default = security_from_args(parser.parse_args([]), env={})
+    """The security flags of a node's command line (the bridge's; the policy's are the
+    same ``SecurityFlags``) -> ``LinkSecurity``."""
+    from skyloop.stack_cli import parse_node
+
+    def flags(argv: list[str]):
+        return parse_node(["bridge", *argv])
+
+    default = security_from_args(flags([]), env={})
     assert default == LinkSecurity() and not default.signing and not default.expose
     hexfile = tmp_path / "key.hex"
     hexfile.write_text(KEY.hex() + "\n")
-    sec = security_from_args(parser.parse_args(
+    sec = security_from_args(flags(
         ["--signing-key-file", str(hexfile), "--allow-sysid", "245", "--allow-sysid", "255",
          "--expose"]), env={KEY_ENV: "ignored: the file wins"})
     assert sec.secret_key == KEY and sec.allow_sysids == {245, 255} and sec.expose
-    env = security_from_args(parser.parse_args([]), env={KEY_ENV: "correct horse"})
+    env = security_from_args(flags([]), env={KEY_ENV: "correct horse"})
     assert env.secret_key == hashlib.sha256(b"correct horse").digest()  # MAVProxy's rule
     rawfile = tmp_path / "key.bin"
     rawfile.write_bytes(b"\xff" * 32)
-    assert security_from_args(parser.parse_args(["--signing-key-file", str(rawfile)]),
+    assert security_from_args(flags(["--signing-key-file", str(rawfile)]),
                               env={}).secret_key == b"\xff" * 32
     assert key_from_text("AB" * 32) == bytes.fromhex("ab" * 32)
     with pytest.raises(ValueError, match="empty"):
         key_from_text("  \n")
     with pytest.raises(SystemExit):
-        parser.parse_args(["--allow-sysid", "x"])
+        flags(["--allow-sysid", "x"])
 
 
 def test_signing_timestamp_follows_the_wall_clock() -> None:
