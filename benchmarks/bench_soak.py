@@ -2,14 +2,15 @@
 --minutes N``; not part of the default run).
 
 ``skyloop up --realtime`` with the shipped policy on the valley flies seeded episodes
-back to back. The benchmark watches from outside, as a ground station would:
+back to back, measured for N minutes from the first control step (the first ``clock``
+message on the bus). The benchmark watches from outside, as a ground station would:
 
 - RSS of every node, the recorder included (``/proc/<pid>/status`` VmRSS), once warmed
   up (a minute in, or half the first window) and at the end; goal: growth < 5 % per
   node.
 - Per window (10 minutes, or a third of a shorter run): the loop latency seen on the
   bus, from a step's ``clock`` message to its ``cmd_vel`` (the bridge's setpoint for
-  that step: perception, policy, MAVLink and bridge in between), p50/p99/max; steps
+  that step: perception, policy, MAVLink and bridge in between), p50/p90/p99/max; steps
   whose setpoint came more than one control period late (``late``) or never
   (``missing``).
 - The launcher's summary at the end (SIGINT after N minutes): episodes, outcomes, and
@@ -64,15 +65,19 @@ class LoopWatch:
         self.lock = threading.Lock()
         self.clock: dict[int, float] = {}  # stamp ns -> arrival (monotonic s)
         self.cmd: dict[int, float] = {}
+        self.first = threading.Event()  # a step's clock came: the episodes have begun
         self.bus = Bus.open(SessionConfig(hub=hub))
         self.bus.subscribe(keys.CLOCK, "uav1", lambda msg: self._put(
-            self.clock, m.nanoseconds(msg.sim_time)))
+            self.clock, m.nanoseconds(msg.sim_time), self.first))
         self.bus.subscribe(keys.CMD_VEL, "uav1", lambda msg: self._put(
             self.cmd, m.nanoseconds(msg.header.stamp)))
 
-    def _put(self, table: dict[int, float], stamp: int) -> None:
+    def _put(self, table: dict[int, float], stamp: int,
+             seen: threading.Event | None = None) -> None:
         with self.lock:
             table.setdefault(stamp, time.monotonic())
+        if seen is not None:
+            seen.set()
 
     def window(self, t0: float, t1: float) -> dict:
         """Steps whose clock arrived in [t0, t1), settled (read after t1 + 1 s)."""
@@ -83,8 +88,9 @@ class LoopWatch:
                 self.clock.pop(s, None)
                 self.cmd.pop(s, None)
         a = np.array(lat) if lat else np.zeros(1)
-        return {"steps": len(steps), "latency_ms_p50": float(np.percentile(a, 50)),
-                "latency_ms_p99": float(np.percentile(a, 99)), "latency_ms_max": float(a.max()),
+        p50, p90, p99 = (float(x) for x in np.percentile(a, [50, 90, 99]))
+        return {"steps": len(steps), "latency_ms_p50": p50, "latency_ms_p90": p90,
+                "latency_ms_p99": p99, "latency_ms_max": float(a.max()),
                 "late": int(np.sum(a > PERIOD_NS / 1e6)), "missing": len(steps) - len(lat)}
 
     def close(self) -> None:
@@ -107,7 +113,6 @@ def run(quick: bool, minutes: float | None = None) -> dict:
     watch = LoopWatch(hub)  # after the fork: never fork with a session open
     pids: dict[str, int] = {}
     lines: list[str] = []
-    flying = threading.Event()
 
     def read() -> None:
         assert proc.stdout is not None
@@ -115,13 +120,14 @@ def run(quick: bool, minutes: float | None = None) -> dict:
             lines.append(line)
             if (node := launcher.started(line)) is not None:
                 pids[node[0]] = node[1]
-            if line.startswith("episode "):
-                flying.set()
 
     threading.Thread(target=read, daemon=True).start()
     try:
-        if not flying.wait(180.0):
-            raise RuntimeError("the stack did not fly within 180 s: " + "".join(lines[-20:]))
+        deadline = time.monotonic() + 180.0
+        while not watch.first.wait(0.2):
+            if proc.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("the stack did not fly (it exited, or 180 s passed): "
+                                   + "".join(lines[-20:]))
         t_start = time.monotonic()
         warm: dict[str, float | None] = {}
         windows = []
@@ -139,8 +145,9 @@ def run(quick: bool, minutes: float | None = None) -> dict:
             w["minute"] = round((end - t_start) / 60.0, 1)
             windows.append(w)
             print(f"    soak {w['minute']:.1f}/{minutes:g} min: {w['steps']} steps, latency "
-                  f"p50 {w['latency_ms_p50']:.1f} p99 {w['latency_ms_p99']:.1f} ms, late "
-                  f"{w['late']}, missing {w['missing']}", flush=True)
+                  f"p50 {w['latency_ms_p50']:.1f} p90 {w['latency_ms_p90']:.1f} p99 "
+                  f"{w['latency_ms_p99']:.1f} ms, late {w['late']}, missing {w['missing']}",
+                  flush=True)
             t = end
         final = {name: rss_mb(pid) for name, pid in pids.items()}
     finally:
