@@ -381,7 +381,10 @@ def recover_log(src: str | os.PathLike[str], out_dir: str | os.PathLike[str] | N
                           metadata={"recovered_from": str(reader.path)}) as writer:
         for msg in reader.messages():
             writer.write(msg.topic, msg.msgtype, msg.data, msg.log_time_ns, msg.publish_time_ns)
-    return writer.dir, reader.report
+    report = reader.report  # messages() reads no episodes: count those the copy has
+    report.episodes_complete = writer.episodes_ended
+    report.episodes_incomplete = writer.episodes_started - writer.episodes_ended
+    return writer.dir, report
 
 
 def _yaml(data: dict[str, Any]) -> str:

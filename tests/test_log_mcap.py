@@ -413,7 +413,8 @@ def test_log_repair_command_makes_a_killed_log_readable(tmp_path):
     fixed = next((tmp_path / "fixed").glob("*/*.mcap"))
     with open(fixed, "rb") as f:
         assert sum(1 for _ in make_reader(f).iter_messages()) > 0
-    assert read_episodes(fixed)[1].episodes_complete >= 1
+    complete = read_episodes(fixed)[1].episodes_complete
+    assert complete >= 1 and f": {complete} complete, " in out.stdout, out.stdout  # as it says
     missing = subprocess.run([sys.executable, "-m", "skyloop", "log", "repair",
                               str(tmp_path / "nope.mcap")], capture_output=True, text=True,
                              cwd=REPO, timeout=120)

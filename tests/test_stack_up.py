@@ -508,6 +508,41 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     assert sum(e.outcome == "aborted" for e in episodes) == s["aborted"]
 
 
+def test_a_killed_recorder_leaves_a_log_that_repair_makes_whole(tmp_path):
+    """The recorder SIGKILLed mid-run (seeded moment): the launcher names it and stops
+    (exit 1: the recorder is never restarted, a new one would be a second log), and
+    ``skyloop log repair`` turns what it wrote into a finished log holding, whole and in
+    order, every episode that ended before the kill but the last (whose END the recorder
+    still held for late messages: ``end_grace_s``), as the launcher reported them."""
+    rng = np.random.default_rng(11)
+    kill_after = int(rng.integers(3, 8))  # episode lines
+    out = tmp_path / "log"
+    args = up_args("--episodes", "30", "--policy", "scripted", "--log-dir", str(out))
+    reported: list[tuple[str, int]] = []  # (outcome, steps) per episode line
+
+    def on_line(line: str, pids: dict[str, int]) -> None:
+        if line.startswith("episode ") and len(reported) < kill_after:
+            # "episode 3 (seed 1003): success in 58 steps, path 10.9 m"
+            outcome, steps = line.split("): ", 1)[1].split()[0:3:2]
+            reported.append((outcome, int(steps)))
+            if len(reported) == kill_after:
+                os.kill(pids["record"], signal.SIGKILL)
+
+    code, text = watch_up(args, on_line)
+    assert code == 1 and "node 'record' exited (code -9)" in text, text
+    [src] = list(out.glob("*/*.mcap"))
+    r = subprocess.run([sys.executable, "-m", "skyloop", "log", "repair", str(src), "--out",
+                        str(tmp_path / "fixed")], capture_output=True, text=True, cwd=ROOT,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr
+    [fixed] = list((tmp_path / "fixed").glob("*/*.mcap"))
+    episodes, report = read_episodes(fixed)
+    assert report.finished and f": {len(episodes)} complete, " in r.stdout, r.stdout
+    assert len(episodes) >= kill_after - 1, (kill_after, len(episodes), r.stdout)
+    assert [e.index for e in episodes] == list(range(len(episodes)))
+    assert [(e.outcome, e.steps) for e in episodes] == reported[:len(episodes)]
+
+
 def test_a_killed_policy_is_restarted_in_real_time(tmp_path):
     """The chaos test's fault in real time (10 Hz, the sim never waits for a command):
     the policy SIGKILLed mid-episode; the vehicle's failsafe holds (then lands), on time
