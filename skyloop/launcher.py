@@ -397,7 +397,8 @@ def run_up(args: UpCommand) -> int:
         if args.log_dir:
             graph.start("record", ["record", "--out", str(args.log_dir), "--vehicle",
                                    args.vehicle, "--split-episodes",
-                                   str(args.log_split_episodes), "--compression",
+                                   str(args.log_split_episodes), "--split-minutes",
+                                   str(args.log_split_minutes), "--compression",
                                    args.log_compression, "--scenario", args.scenario])
         if args.viz:
             graph.start("viz", nodes["viz"])
@@ -550,7 +551,7 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
               f"{sum(s['cpu_ms_per_step'].values()):.2f}", flush=True)
     if graph.counters:
         s["counters"] = graph.counter_totals()
-        # only the nodes with bounded queues count drops (the policy's counters have none)
+        # each node's counters (SKYLOOP-COUNTERS) say what its bounded queues dropped
         drops = ", ".join(f"{k} {v['dropped']}" for k, v in s["counters"].items()
                           if "dropped" in v)
         print(f"dropped from bounded queues (overload): {drops}", flush=True)

@@ -26,6 +26,7 @@ tests/test_cli_nodes.py checks both agree. Only light modules are imported here.
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -368,6 +369,9 @@ class UpCommand(EncodingFlag, SimRules, MavlinkPorts, SecurityFlags, PolicyFlag,
     """record the run (MCAP) under this directory"""
     log_split_episodes: Annotated[int, tyro.conf.arg(metavar="N")] = 0
     """with --log-dir: a new MCAP file every N episodes (0: one file)"""
+    log_split_minutes: Annotated[float, tyro.conf.arg(metavar="M")] = 0.0
+    """with --log-dir: a new MCAP file at the first episode end after M minutes in the
+    current one (0: off; `skyloop record --split-minutes`)"""
     log_compression: Literal["zstd", "lz4", "none"] = "zstd"
     """with --log-dir: MCAP chunk compression (zstd: about 40% smaller than none)"""
     json: Annotated[Path | None, tyro.conf.arg(metavar="PATH")] = None
@@ -409,6 +413,9 @@ class UpCommand(EncodingFlag, SimRules, MavlinkPorts, SecurityFlags, PolicyFlag,
             raise ConfigError("zenoh_config_dir", "needs --router (mutual TLS through the "
                                                   "router)")
         at_least(self, "log_split_episodes", 0)
+        if not (math.isfinite(self.log_split_minutes) and self.log_split_minutes >= 0):
+            raise ConfigError("log_split_minutes", f"must be 0 (off) or more minutes, got "
+                                                   f"{self.log_split_minutes:g}")
         at_least(self, "max_restarts", 1)
         at_least(self, "viz_scan_every", 1)
         if self.viz is not None:
