@@ -186,7 +186,7 @@ class OffboardClient:
         """Block until the vehicle's heartbeat has been heard (its address learnt)."""
         if not self.wait(lambda: self.vehicle is not None, timeout):
             raise OffboardError(f"no heartbeat from system {self.vehicle_system} "
-                                f"within {timeout} s")
+                                f"within {timeout:g} s")
 
     # ------------------------------------------------------------------ setpoints
     def send_velocity(self, command: VelocityCommand, time_boot_ms: int | None = None) -> None:

@@ -156,6 +156,7 @@ def cmd_policy(args: PolicyCommand) -> int:
     # Until it flies, SIGTERM interrupts whatever start-up waits on (the heartbeat, arming,
     # the takeoff), as Ctrl-C does (main exits 130 or 143, after the ``finally`` below has
     # closed what was opened); from then on the loop checks ``stop`` every step.
+    from mavlink_bridge.offboard_client import OffboardError
     from mavlink_bridge.transport import LinkBindError
 
     _raise_on_term()
@@ -172,7 +173,12 @@ def cmd_policy(args: PolicyCommand) -> int:
                               lockstep=not args.realtime, weights=weights, hold=args.hold)
         except LinkBindError as err:
             raise ValueError(f"{err} (choose another with --api-port)") from None
-        node.start(args.takeoff_altitude)
+        try:
+            node.start(args.takeoff_altitude, timeout=args.startup_timeout)
+        except OffboardError as err:  # denied or no vehicle until the timeout: one line
+            print(f"skyloop policy: could not take the vehicle into OFFBOARD: {err}",
+                  file=sys.stderr, flush=True)
+            return 1
         stop = _stop_event()
         bus.declare_ready(args.vehicle, "policy")  # what the launcher waits on
         print(READY_LINE, flush=True)

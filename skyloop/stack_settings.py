@@ -309,11 +309,15 @@ class PolicyCommand(PolicyFlag, SecurityFlags, ApiPort, ClockFlags, BusFlags):
     hold: Annotated[bool, tyro.conf.arg(help=(
         "between episodes stream a zero setpoint (hover in OFFBOARD) and take OFFBOARD "
         "again at a new episode (goals from a ground station)"))] = False
+    startup_timeout: Annotated[float, tyro.conf.arg(metavar="S")] = 30.0
+    """seconds to wait for the vehicle's heartbeat, and then to have it armed and in
+    OFFBOARD (denials are tried again meanwhile), before exiting with code 1"""
 
     def validate(self) -> None:
         super().validate()
         if self.takeoff_altitude is not None:
             positive(self, "takeoff_altitude")
+        positive(self, "startup_timeout")
 
 
 @dataclass(kw_only=True)

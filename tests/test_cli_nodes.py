@@ -8,6 +8,7 @@ before anything starts."""
 from __future__ import annotations
 
 import re
+import socket
 import subprocess
 import sys
 from dataclasses import MISSING, fields
@@ -35,7 +36,7 @@ FLAGS = {
             "--param", "--lockstep-timeout", "--seed", "--max-steps", "--wait-go"],
     "perception": [*BUS, "--encoding"],
     "policy": [*BUS, *CLOCK, *SECURITY, "--policy", "--api-host", "--api-port",
-               "--takeoff-altitude", "--weights-from-bus", "--hold"],
+               "--takeoff-altitude", "--weights-from-bus", "--hold", "--startup-timeout"],
     "bridge": [*BUS, *SECURITY, *PORTS, "--bind", "--api-host", "--gcs-host", "--no-gcs",
                "--command-timeout", "--params-file", "--param"],
     "up": [*CLOCK, *SECURITY, *PORTS, "--scenario", "--episodes", "--seed", "--max-steps",
@@ -189,6 +190,7 @@ BAD = [
     ("policy", ["--api-port", "70000"], "--api-port", "70000"),
     ("policy", ["--allow-sysid", "x"], "--allow-sysid", "x"),
     ("policy", ["--takeoff-altitude", "-2"], "--takeoff-altitude", "-2"),
+    ("policy", ["--startup-timeout", "0"], "--startup-timeout", "0"),
     ("bridge", ["--gcs-port", "0"], "--gcs-port", "0"),
     ("bridge", ["--command-timeout", "-1"], "--command-timeout", "-1"),
     ("bridge", ["--param", "MPC_XY_VEL_MAX=abc"], "--param", "abc"),
@@ -289,6 +291,22 @@ def test_a_taken_endpoint_is_one_line_naming_it():
             assert f"cannot open a Zenoh session: Can not create a new TCP listener bound to " \
                    f"{endpoint}" in proc.stderr and "--listen" in proc.stderr, proc.stderr
             assert ".rs:" not in proc.stderr, proc.stderr  # no Rust source locations
+
+
+def test_a_policy_with_no_vehicle_exits_with_one_line():
+    """``skyloop policy`` with no vehicle on its API port: after --startup-timeout, exit 1
+    with one line saying why (no traceback), not a hang or a torch/MAVLink trace."""
+    from loopback import free_port
+
+    proc = subprocess.run([sys.executable, "-m", "skyloop", "policy", "--policy", "scripted",
+                           "--startup-timeout", "1", "--listen",
+                           f"tcp/127.0.0.1:{free_port()}", "--api-port",
+                           str(free_port(socket.SOCK_DGRAM))],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.stderr.splitlines()[-1] == ("skyloop policy: could not take the vehicle into "
+                                            "OFFBOARD: no heartbeat from system 1 within 1 s")
 
 
 def test_a_bad_value_stops_up_before_anything_starts(tmp_path):

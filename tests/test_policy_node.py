@@ -139,11 +139,15 @@ def test_no_flight_under_parameters_the_actor_was_not_trained_for(tmp_path):
             b.close()
 
 
-def test_a_policy_started_beside_a_crashed_vehicle_arms_once_it_is_placed(tmp_path):
+def test_a_policy_started_beside_a_crashed_vehicle_joins_once_it_is_placed(tmp_path):
     """A policy (re)started while the vehicle lies crashed and disarmed is denied arming
-    until the simulator places the vehicle for the next episode: it tries again and
-    joins then, instead of exiting (the chaos test's restarted policy did, and the run
-    ran out of restarts)."""
+    until the simulator places the vehicle for the next episode; and the vehicle can come
+    down again after its arming, before the node's takeoff or OFFBOARD switch (denied: not
+    armed). Both times start() tries again from arming and joins in OFFBOARD, instead of
+    exiting (the chaos test's restarted policy did, on each, and the run ran out of
+    restarts)."""
+    from sitl.commander import State
+
     cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
     buses = [Bus.open(cfg) for _ in range(3)]
     api, api_local = free_port(socket.SOCK_DGRAM), free_port(socket.SOCK_DGRAM)
@@ -159,14 +163,35 @@ def test_a_policy_started_beside_a_crashed_vehicle_arms_once_it_is_placed(tmp_pa
     service = VehicleService(buses[1], "uav1", commander, None)
     node = PolicyNode(buses[2], lambda state: np.zeros(4), "uav1",
                       OffboardClientConfig(listen_port=api), trained=TASK)
-    denied_until = time.monotonic() + 2.0
+    placed_at: list[float] = []  # wall times the sim placed the vehicle
+    arms: list[float] = []  # vehicle times the node's arming was accepted after a placement
+    accept_arming = commander.arm
 
-    def vehicle() -> None:  # the sim: the next episode places the vehicle after 2 s
-        t, placed = 0.0, False
+    def arm(now: float):  # the commander's own verdict, noted
+        verdict = accept_arming(now)
+        if placed_at and verdict.accepted:
+            arms.append(now)
+        return verdict
+
+    commander.arm = arm
+
+    def vehicle() -> None:
+        """The sim: the next episode places the vehicle (in OFFBOARD, as after a crash in
+        OFFBOARD) after 1 s; once the node's arming is accepted, it crashes again (before the
+        node's takeoff or switch), and the episode after places it once more 1 s later."""
+        t, crashed_at = 0.0, time.monotonic()
         while not stop.is_set():
-            if not placed and time.monotonic() > denied_until:
+            now = time.monotonic()
+            if crashed_at is not None and now > crashed_at + 1.0:
                 commander.place(t, True, "OFFBOARD")
-                placed = True
+                placed_at.append(now)
+                crashed_at = None
+            elif len(placed_at) == 1 and arms and crashed_at is None:
+                commander.collision(t)  # down again, between arming and OFFBOARD
+                crashed_at = now
+            # the node's zero setpoint, streamed from its start, as the sim hands cmd_vel
+            # to the commander (what OFFBOARD needs)
+            commander.setpoint(t, 0.0, 0.0, 0.0, 0.0, body=True)
             service.serve(t)
             service.publish_status(0.0, t, force=True)
             t += 0.01  # the vehicle's clock at wall speed (the client streams in wall time)
@@ -176,9 +201,9 @@ def test_a_policy_started_beside_a_crashed_vehicle_arms_once_it_is_placed(tmp_pa
     thread.start()
     sim.start()
     try:
-        node.client.wait_heartbeat(10.0)
-        node._arm(15.0)  # start()'s arming: raised CommandRejected at once before the retry
-        assert time.monotonic() > denied_until and node.client.armed
+        node.start(timeout=15.0)
+        assert len(placed_at) == 2 and len(arms) >= 2, (placed_at, arms)
+        assert commander.state == State.OFFBOARD
         denials = f"cmd.{mavlink.MAV_CMD_COMPONENT_ARM_DISARM}.{mavlink.MAV_RESULT_DENIED}"
         assert bridge.link.counters[denials] >= 1, bridge.link.counters
     finally:

@@ -115,14 +115,42 @@ class PolicyNode:
         self.refusals = 0  # times the node stopped flying for off-task parameters
         self._resume = False  # parameters as trained again: OFFBOARD at the next step
 
-    def start(self, takeoff_altitude: float | None = None, timeout: float = 30.0) -> None:
-        """Connect, stream a zero setpoint, arm, take off, start offboard."""
+    def start(self, takeoff_altitude: float | None = None, timeout: float = 30.0,
+              retry_s: float = 0.5) -> None:
+        """Connect, stream a zero setpoint, arm, take off, start offboard. A denial of
+        arming or of OFFBOARD is tried again from arming for up to ``timeout`` s: a node
+        restarted while the vehicle lies crashed and disarmed (its episode ended in a
+        collision) is denied until the simulator places the vehicle for the next episode,
+        and the vehicle can come down again between arming and the switch (both seen in
+        the chaos test: the restarted policy exited on the denial and used up its
+        restarts)."""
         self.controller(self.stacker.state)  # warm up (torch's first call is slow)
         c = self.client
         log.info("waiting up to %g s for the vehicle's heartbeat", timeout)
         c.wait_heartbeat(timeout)
         c.set_velocity_body(0.0, 0.0, 0.0, 0.0)
-        self._arm(timeout)
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                self._join(takeoff_altitude, timeout)
+                break
+            except CommandRejected as err:
+                if time.monotonic() + retry_s > deadline:
+                    raise
+                log.info("%s: the vehicle may be down between episodes; trying again", err)
+                time.sleep(retry_s)
+        # From now on the node paces the stream itself (see the module docstring);
+        # holding, the client's timer streams the zero setpoint until an observation.
+        if not self.hold:
+            self._stream_zero(False)
+        log.info("offboard: flying %s (weights version %d)",
+                 getattr(self.controller, "name", "controller"), self.weights_version)
+
+    def _join(self, takeoff_altitude: float | None, timeout: float) -> None:
+        """Arm, take off (or join the vehicle in the air), start offboard; a denial
+        raises ``CommandRejected``."""
+        c = self.client
+        c.arm()
         try:
             c.takeoff(takeoff_altitude)
         except OffboardError:
@@ -136,29 +164,6 @@ class PolicyNode:
             if not c.wait(lambda: c.mode == AUTO_LOITER, timeout):
                 raise OffboardError(f"takeoff did not complete within {timeout} s")
         c.start_offboard()
-        # From now on the node paces the stream itself (see the module docstring);
-        # holding, the client's timer streams the zero setpoint until an observation.
-        if not self.hold:
-            self._stream_zero(False)
-        log.info("offboard: flying %s (weights version %d)",
-                 getattr(self.controller, "name", "controller"), self.weights_version)
-
-    def _arm(self, timeout: float, retry_s: float = 0.5) -> None:
-        """Arm, retrying a denial for up to ``timeout`` s: a node restarted while the
-        vehicle lies crashed and disarmed (its episode ended in a collision) is denied
-        until the simulator places the vehicle for the next episode (seen in the chaos
-        test: the restarted policy exited on the denial and used up its restarts)."""
-        deadline = time.monotonic() + timeout
-        while True:
-            try:
-                self.client.arm()
-                return
-            except CommandRejected as err:
-                if time.monotonic() + retry_s > deadline:
-                    raise
-                log.info("arming denied (%s): the vehicle may be down between episodes; "
-                         "trying again", err)
-                time.sleep(retry_s)
 
     def _stream_zero(self, on: bool) -> None:
         """Start (``on``: a zero setpoint, re-sent at 20 Hz by the client) or stop the
