@@ -28,6 +28,17 @@ from sitl.commander import Commander  # noqa: E402
 from sitl.vehicle_service import VehicleService  # noqa: E402
 
 
+def stop_all(stop: threading.Event, threads, closers, buses) -> None:
+    """A test's teardown: stop the loops, join their threads, close the nodes, then the
+    buses."""
+    stop.set()
+    for thread in threads:
+        thread.join(5.0)
+    for each in closers:
+        each.close()
+    for bus in buses:
+        bus.close()
+
 def test_an_actor_turning_nan_in_flight_is_refused_after_a_few_steps():
     bus = Bus.open(SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}"))
     outputs = iter([np.zeros(4)] + [np.full(4, np.nan)] * 10)
@@ -129,14 +140,7 @@ def test_no_flight_under_parameters_the_actor_was_not_trained_for(tmp_path):
                  "the encoding")  # (STATUSTEXT keeps 50 bytes)
         assert node.act(m.observation(obs, 0.5, 0, 5, scaling=scaling)) is not None
     finally:
-        stop.set()
-        thread.join(5.0)
-        sim.join(5.0)
-        bridge.close()
-        node.close()
-        gcs.close()
-        for b in buses:
-            b.close()
+        stop_all(stop, (thread, sim), (bridge, node, gcs), buses)
 
 
 def test_a_policy_started_beside_a_crashed_vehicle_joins_once_it_is_placed(tmp_path):
@@ -207,10 +211,4 @@ def test_a_policy_started_beside_a_crashed_vehicle_joins_once_it_is_placed(tmp_p
         denials = f"cmd.{mavlink.MAV_CMD_COMPONENT_ARM_DISARM}.{mavlink.MAV_RESULT_DENIED}"
         assert bridge.link.counters[denials] >= 1, bridge.link.counters
     finally:
-        stop.set()
-        thread.join(5.0)
-        sim.join(5.0)
-        bridge.close()
-        node.close()
-        for b in buses:
-            b.close()
+        stop_all(stop, (thread, sim), (bridge, node), buses)
