@@ -431,8 +431,8 @@ def episode_start(episode: int, seed: int, start: Sequence[float], goal: Sequenc
 
 
 def episode_limits(msg: Any) -> dict[str, float] | None:
-    """The episode limits an ``EpisodeEvent`` START records (``bus.task.EPISODE_LIMITS``;
-    ``max_steps`` inf when unlimited), None when it records none (goal_radius 0)."""
+    """The episode limits an ``EpisodeEvent`` START records (``max_steps`` inf when
+    unlimited), None when it records none (goal_radius 0)."""
     if not msg.goal_radius > 0.0:
         return None
     return {"max_steps": float(msg.max_steps) if msg.max_steps else math.inf,

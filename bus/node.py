@@ -170,6 +170,13 @@ class Subscription:
             sub.undeclare()
 
 
+def inbox_drops(inboxes) -> dict[str, int]:
+    """What bounded inboxes dropped, per inbox (``dropped_<topic>``) and in total
+    (``dropped``): the counters a node prints at exit (the inboxes count as they drop)."""
+    each = {f"dropped_{i.subscription.topic}": i.dropped for i in inboxes}
+    return {"dropped": sum(each.values()), **each}
+
+
 class Inbox:
     """A subscription feeding a bounded queue, for consumers that wait (:meth:`get`).
 

@@ -19,13 +19,13 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-__all__ = ["EPISODE_LIMITS", "OUTCOME_LIMITS", "TASK", "TaskSpec", "episode_outcome"]
+__all__ = ["OUTCOME_LIMITS", "TASK", "TaskSpec", "episode_outcome"]
 
-#: The limits an episode runs under, recorded in its log (``EpisodeEvent`` START).
-EPISODE_LIMITS = ("max_steps", "goal_radius", "goal_max_altitude")
-#: Those of them that decide success, hence the terminal flag and the goal reward of a
-#: logged episode: a learner trains only on episodes run under its own. (``max_steps``
-#: only truncates, which is not terminal: any value serves.)
+#: Of the limits an episode runs under and its log records (``EpisodeEvent`` START:
+#: max_steps, goal_radius, goal_max_altitude), those that decide success, hence the
+#: terminal flag and the goal reward of a logged episode: a learner trains only on
+#: episodes run under its own. (``max_steps`` only truncates, which is not terminal: any
+#: value serves.)
 OUTCOME_LIMITS = ("goal_radius", "goal_max_altitude")
 
 

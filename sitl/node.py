@@ -98,7 +98,7 @@ from typing import Any
 import numpy as np
 
 from bus import keys
-from bus.node import Bus
+from bus.node import Bus, inbox_drops
 from sitl.commander import Commander
 from sitl.episode import EpisodeSim
 from sitl.node_episodes import EpisodeRunner
@@ -176,9 +176,7 @@ class SimNode:
         per inbox (``dropped_<topic>``) and in total (``dropped``): the counters line
         ``skyloop sim`` prints last. Read at exit; the inboxes count as they drop, so
         the control step pays nothing for it."""
-        inboxes = (self.cmds, self.goals.inbox, self.service.params)
-        each = {f"dropped_{i.subscription.topic}": i.dropped for i in inboxes}
-        return {"dropped": sum(each.values()), **each}
+        return inbox_drops((self.cmds, self.goals.inbox, self.service.params))
 
     def _serve_requests(self) -> None:
         """Requests, and the status (on changes, and as a keepalive)."""

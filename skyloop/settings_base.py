@@ -14,8 +14,8 @@ import tyro
 
 from policy.training.settings import ConfigError
 
-__all__ = ["Repeated", "Settings", "VehicleFlag", "at_least", "bare_flag", "port",
-           "positive"]
+__all__ = ["Repeated", "Settings", "VehicleFlag", "at_least", "bare_flag",
+           "minutes_or_off", "port", "positive"]
 
 Repeated = tyro.conf.UseAppendAction  # --param A=1 --param B=2, as argparse's append
 
@@ -44,6 +44,13 @@ def positive(config: object, name: str) -> None:
     value = getattr(config, name)
     if not (math.isfinite(value) and value > 0.0):
         raise ConfigError(name, f"must be a finite number above 0, got {value}")
+
+
+def minutes_or_off(config: object, name: str) -> None:
+    """``config.name`` is 0 (off) or a finite number of minutes above 0."""
+    value = getattr(config, name)
+    if not (math.isfinite(value) and value >= 0):
+        raise ConfigError(name, f"must be 0 (off) or more minutes, got {value:g}")
 
 
 def port(config: object, name: str, least: int = 1) -> None:

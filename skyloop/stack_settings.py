@@ -26,7 +26,6 @@ tests/test_cli_nodes.py checks both agree. Only light modules are imported here.
 from __future__ import annotations
 
 import copy
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -44,6 +43,7 @@ from skyloop.settings_base import (
     VehicleFlag,
     at_least,
     bare_flag,
+    minutes_or_off,
     port,
     positive,
 )
@@ -417,9 +417,7 @@ class UpCommand(EncodingFlag, SimRules, MavlinkPorts, SecurityFlags, PolicyFlag,
             raise ConfigError("zenoh_config_dir", "needs --router (mutual TLS through the "
                                                   "router)")
         at_least(self, "log_split_episodes", 0)
-        if not (math.isfinite(self.log_split_minutes) and self.log_split_minutes >= 0):
-            raise ConfigError("log_split_minutes", f"must be 0 (off) or more minutes, got "
-                                                   f"{self.log_split_minutes:g}")
+        minutes_or_off(self, "log_split_minutes")
         at_least(self, "max_restarts", 1)
         at_least(self, "viz_scan_every", 1)
         if self.viz is not None:

@@ -20,7 +20,7 @@ from bus.certs import DAYS, NODES
 from bus.session import ENV_CONFIG, ENV_LISTEN, HUB
 from policy.training.settings import ConfigError
 from skyloop.dataclass_cli import parse
-from skyloop.settings_base import Repeated
+from skyloop.settings_base import Repeated, minutes_or_off
 from skyloop.stack_settings import (
     DEMO_SEED,
     BusFlags,
@@ -149,9 +149,7 @@ class RecordCommand(WorldFirstFlag, ZenohFlags):
     def validate(self) -> None:
         super().validate()
         at_least(self, "split_episodes", 0)
-        if not (math.isfinite(self.split_minutes) and self.split_minutes >= 0):
-            raise ConfigError("split_minutes", f"must be 0 (off) or more minutes, got "
-                                               f"{self.split_minutes:g}")
+        minutes_or_off(self, "split_minutes")
         at_least(self, "queue", 1)
         if self.vehicle is not None:
             from bus.keys import check_vehicle

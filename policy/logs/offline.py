@@ -117,13 +117,11 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None,
 
 def rebuild_episode(episode, config: RewardConfig,
                     commands: dict[int, tuple] | None = None,
-                    observations: dict[tuple[Any, int, int], Any] | None = None,
-                    task: TaskSpec = TASK) -> Transitions:
-    """Transitions of one complete logged episode for a learner of ``task``;
-    ``ValueError`` names what does not fit (:func:`episode_steps`, then
-    :func:`policy.logs.transitions.transitions_from_steps`)."""
-    return transitions_from_steps(episode_steps(episode, commands, observations), config,
-                                  task)
+                    observations: dict[tuple[Any, int, int], Any] | None = None
+                    ) -> Transitions:
+    """Transitions of one complete logged episode; ``ValueError`` names what does not
+    fit (:func:`episode_steps`, then :func:`policy.logs.transitions.transitions_from_steps`)."""
+    return transitions_from_steps(episode_steps(episode, commands, observations), config)
 
 
 def task_of(limits: dict[str, float] | None) -> TaskSpec | None:
@@ -166,13 +164,13 @@ def body_commands(path: Path) -> dict[int, tuple]:
 
 
 def load_logs(paths: list[Path], buffer: ReplayBuffer, goal_reward,
-              config: RewardConfig, task: TaskSpec | None = None) -> LogReport:
+              config: RewardConfig) -> LogReport:
     """Fill ``buffer`` with every complete episode of ``paths`` (MCAP files, or run
     directories: their ``*.mcap`` files in order, e.g. a log split every N episodes);
-    count what is skipped. The episodes train under ``task``, or (None) under the task the
-    first usable episode records (``report.task``); an episode run under other goal
-    limits is skipped, counted with its reason."""
-    report = LogReport(task=task)
+    count what is skipped. The episodes train under the task the first usable episode
+    records (``report.task``); an episode run under other goal limits is skipped, counted
+    with its reason."""
+    report = LogReport()
     files = [f for p in map(Path, paths) for f in (log_files(p) if p.is_dir() else [p])]
     for path in files:
         report.files.append(str(path))

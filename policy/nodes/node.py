@@ -57,7 +57,7 @@ import numpy as np
 
 from bus import keys, params
 from bus import messages as m
-from bus.node import Bus
+from bus.node import Bus, inbox_drops
 from bus.task import TASK, TaskSpec
 from mavlink_bridge.modes import AUTO_LOITER, AUTO_TAKEOFF, OFFBOARD
 from mavlink_bridge.offboard_client import (
@@ -338,9 +338,8 @@ class PolicyNode:
         (``dropped_<topic>``) and in total (``dropped``). Read at exit: the inboxes count
         as they drop, so a step pays nothing for it."""
         inboxes = [i for i in (self.inbox, self.params, self.events) if i is not None]
-        each = {f"dropped_{i.subscription.topic}": i.dropped for i in inboxes}
         return {"sent": self.sent, "refusals": self.refusals,
-                "bad_actions": self.bad_actions, "dropped": sum(each.values()), **each}
+                "bad_actions": self.bad_actions, **inbox_drops(inboxes)}
 
     def close(self) -> None:
         self.client.close()
