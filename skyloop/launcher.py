@@ -555,6 +555,12 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
         drops = ", ".join(f"{k} {v['dropped']}" for k, v in s["counters"].items()
                           if "dropped" in v)
         print(f"dropped from bounded queues (overload): {drops}", flush=True)
+        router = s["counters"].get("router", {})
+        if router.get("denied"):  # what its access control refused (bus.denials)
+            kinds = ", ".join(f"{k.removeprefix('denied_').replace('_', ' ')} {v}"
+                              for k, v in sorted(router.items()) if k.startswith("denied_"))
+            print(f"refused by the router's access control: {router['denied']} message(s) "
+                  f"({kinds}); its last log line names the keys (-v)", flush=True)
         refusals = s["counters"].get("policy", {}).get("refusals", 0)
         if refusals:
             print(f"the policy held the vehicle {refusals} time(s): a vehicle parameter or "

@@ -345,27 +345,52 @@ def run_record(args: RecordCommand) -> int:
 
 def run_router(args: RouterCommand) -> int:
     """Run the Python Zenoh router until SIGINT/SIGTERM; a config it cannot use (an
-    unreadable ``--zenoh-config``) is one line, exit 2."""
+    unreadable ``--zenoh-config``) is one line, exit 2. With access control in its
+    configuration (``skyloop certs``' ``router.json5``) it counts the messages that
+    refuses (``bus.denials``: Zenoh's own log, its stdout, read in-process; what
+    ``RUST_LOG`` asks for is still shown) and ends with a line of them, if any, and
+    its counters line (``skyloop.launcher.COUNTERS_LINE``: ``denied``,
+    ``denied_<kind>_<direction>``)."""
     import logging
     import os
     import sys
 
+    from bus.denials import Denials, StdoutTap, merged_filter, target_level
     from bus.session import SessionConfig
     from bus.session import run_router as router
+    from skyloop.launcher import counters_line
     from skyloop.signals import stop_flag_on_signals
 
     listen = args.listen if args.listen is not None else os.environ.get(ENV_LISTEN) or HUB
     config = (args.zenoh_config if args.zenoh_config is not None
               else os.environ.get(ENV_CONFIG) or None)
+    cfg = SessionConfig(mode="router", config_file=config)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    import zenoh  # Zenoh's own log to stderr when RUST_LOG is set (bus/certs.py: the
-    zenoh.try_init_log_from_env()  # access control's decisions at TRACE)
+    import zenoh
+
     stop = stop_flag_on_signals()
     try:
-        router(listen, stop, SessionConfig(mode="router", config_file=config))
+        acl = cfg.zenoh_config().get_json("access_control/enabled") == "true"
     except ValueError as err:
         print(f"skyloop router: {err}", file=sys.stderr)
         return 2
+    tap = None
+    if acl:  # count what it refuses (bus.denials): its log read from before Zenoh's starts
+        tap = StdoutTap(Denials(), target_level(os.environ.get("RUST_LOG")))
+        os.environ["RUST_LOG"] = merged_filter(os.environ.get("RUST_LOG"))
+        tap.start()
+    zenoh.try_init_log_from_env()  # Zenoh's log (on stdout) as RUST_LOG says
+    try:
+        router(listen, stop, cfg)
+    except ValueError as err:
+        print(f"skyloop router: {err}", file=sys.stderr)
+        return 2
+    finally:
+        if tap is not None:
+            tap.stop()
+            if tap.denials.total:
+                print(f"skyloop router: {tap.denials.summary()}", flush=True)
+            print(counters_line(tap.denials.counters()), flush=True)
     return 0
 
 

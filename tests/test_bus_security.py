@@ -4,6 +4,7 @@ access control by certificate common name), nodes as clients with theirs."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import socket
 import threading
@@ -177,47 +178,142 @@ def test_no_certificate_or_a_wrong_one_cannot_connect(certs, router, tmp_path):
         perception.close()
 
 
-def test_the_router_logs_a_denial_at_trace(certs, tmp_path):
-    """Denials are not counted (bus/certs.py); with RUST_LOG, ``skyloop router`` logs
-    each decision: the unlisted tool's setpoint shows as refused."""
-    import os
-    import re
-    import subprocess
-    import sys
-    from pathlib import Path
+class RouterProcess:
+    """``skyloop router`` as ``skyloop up --router`` starts it (a child program with the
+    configuration ``skyloop certs`` wrote), its output read at the end (:meth:`stop`)."""
 
+    def __init__(self, certs, **env: str) -> None:
+        import os
+        import subprocess
+        import sys
+        from pathlib import Path
+
+        self.certs, self.endpoint = certs, f"tls/localhost:{free_port()}"
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "skyloop", "router", "--listen", self.endpoint,
+             "--zenoh-config", str(certs / "router.json5")],
+            cwd=Path(__file__).resolve().parent.parent,
+            env={**{k: v for k, v in os.environ.items() if k != "RUST_LOG"}, **env},
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.sessions: list[Bus] = []
+
+    def client(self, node: str) -> Bus:
+        """A client session with ``node``'s certificate (the first one waits for the
+        router to listen)."""
+        deadline = time.monotonic() + 30.0
+        while True:
+            try:
+                bus = client(self.endpoint, str(self.certs / f"{node}.json5"))
+            except SessionError:
+                assert self.proc.poll() is None and time.monotonic() < deadline, "no router"
+                continue
+            self.sessions.append(bus)
+            return bus
+
+    def stop(self) -> tuple[str, dict[str, int]]:
+        """Close the sessions, SIGTERM the router: what it printed (colours removed) and
+        its counters line (``skyloop.launcher.COUNTERS_LINE``)."""
+        import json
+        import re
+
+        from skyloop.launcher import COUNTERS_LINE
+
+        for bus in self.sessions:
+            bus.close()
+        self.proc.terminate()
+        out = re.sub(r"\x1b\[[0-9;]*m", "", self.proc.communicate(timeout=15)[0])
+        assert self.proc.returncode == 0, out[-3000:]
+        last = [line for line in out.splitlines() if line.startswith(COUNTERS_LINE)]
+        assert len(last) == 1 and out.rstrip().endswith(last[0]), out[-3000:]
+        return out, json.loads(last[0][len(COUNTERS_LINE):])
+
+
+def test_the_router_counts_each_refused_setpoint(certs):
+    """An unlisted certificate (``skyloop certs --nodes gcs`` after the router's
+    configuration) puts N setpoints on ``cmd_vel`` with a publisher (each one refused from
+    the rights Zenoh cached for the key) and M more with ``session.put`` on the key and
+    on wildcards (each decided anew): the router counts N + M refusals, the sim gets none
+    of them, and the bridge's setpoints, on the same router, arrive and count nothing.
+    Without RUST_LOG, none of Zenoh's decisions is shown: they are only counted."""
     make_certs(certs, ("gcs",))
-    endpoint = f"tls/localhost:{free_port()}"
-    env = {**os.environ, "RUST_LOG": "zenoh::net::routing::interceptor::access_control=trace"}
-    router = subprocess.Popen(
-        [sys.executable, "-m", "skyloop", "router", "--listen", endpoint, "--zenoh-config",
-         str(certs / "router.json5")], cwd=Path(__file__).resolve().parent.parent, env=env,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    gcs = sim = None
+    router = RouterProcess(certs)
     got: list[float] = []
     try:
-        deadline = time.monotonic() + 30.0
-        while gcs is None:
-            try:
-                gcs = client(endpoint, str(certs / "gcs.json5"))
-            except SessionError:
-                assert router.poll() is None and time.monotonic() < deadline, "no router"
-        sim = client(endpoint, str(certs / "sim.json5"))
+        gcs, sim, bridge = (router.client(n) for n in ("gcs", "sim", "bridge"))
         # a client sends a put only where a subscriber matches
         sim.subscribe(keys.CMD_VEL, "uav1", lambda msg: got.append(msg.velocity.x))
         time.sleep(1.0)
-        gcs.publisher(keys.CMD_VEL, "uav1").put(setpoint(1.0))
-        time.sleep(0.5)
+        n = 25
+        pub = gcs.publisher(keys.CMD_VEL, "uav1")
+        for i in range(n):
+            pub.put(setpoint(1.0))
+            if i % 5 == 4:
+                bridge.publisher(keys.CMD_VEL, "uav1").put(setpoint(2.0))
+        undeclared = ("skyloop/uav1/cmd_vel", "skyloop/**", "skyloop/*/cmd_vel")
+        for key in undeclared:
+            gcs.session.put(key, m.encode(setpoint(3.0)))
+        wait_for(lambda: len(got) >= n // 5, 5.0, "the bridge's setpoints")
+        time.sleep(0.5)  # anything of the tool's that got through would be here by now
     finally:
-        for bus in (gcs, sim):
-            if bus is not None:
-                bus.close()
-        router.terminate()
-        out = router.communicate(timeout=15)[0]
-    out = re.sub(r"\x1b\[[0-9;]*m", "", out)  # tracing's colours
-    assert re.search(r"Using cached result: \w+ is unauthorized to Put \(ingress\) on "
-                     r"skyloop/uav1/cmd_vel", out), out[-3000:]
-    assert got == []
+        out, counters = router.stop()
+    assert got == [2.0] * (n // 5)
+    total = n + len(undeclared)
+    assert counters == {"denied": total, "denied_put_ingress": total}, counters
+    assert f"access control refused {total} message(s): Put (ingress) on " \
+           f"skyloop/uav1/cmd_vel {n + 1}, " in out, out[-3000:]
+    assert "access_control" not in out, out[-3000:]
+
+
+def test_the_stack_s_own_traffic_is_refused_nothing(certs):
+    """The nodes named in the router's configuration doing what they do (telemetry,
+    setpoints, readiness tokens, the commander's queryable and its queries, subscribers
+    forwarded to each other): Zenoh decides each subject of a node in turn, refusals
+    before an allowance included, and none of it counts."""
+    router = RouterProcess(certs)
+    got: list[object] = []
+    try:
+        sim, perception, bridge = (router.client(n) for n in ("sim", "perception", "bridge"))
+        sim.subscribe(keys.CMD_VEL, "uav1", lambda msg: got.append(msg.velocity.x))
+        bridge.subscribe(keys.OBSERVATION, "uav1", lambda msg: got.append("observation"))
+        requests = sim.queryable(keys.COMMAND, "uav1")
+        for node, bus in (("sim", sim), ("perception", perception), ("bridge", bridge)):
+            bus.declare_ready("uav1", node)
+        time.sleep(1.0)
+        for _ in range(10):
+            bridge.publisher(keys.CMD_VEL, "uav1").put(setpoint(2.0))
+            perception.publisher(keys.OBSERVATION, "uav1").put(m.observation([0.0] * 35, 0.1))
+        bridge.query(keys.COMMAND, "uav1", m.vehicle_command("bridge"), m.COMMAND_ACK,
+                     timeout=0.5)  # the test's sim does not answer
+        wait_for(lambda: len(got) >= 20, 5.0, "the setpoints and observations")
+        assert [r.msg.command for r in requests.take()] == ["bridge"]
+    finally:
+        out, counters = router.stop()
+    assert counters == {"denied": 0}, (counters, out[-3000:])
+
+
+def test_the_router_shows_zenoh_s_decisions_with_rust_log(certs):
+    """With RUST_LOG naming the access control at TRACE, ``skyloop router`` shows Zenoh's
+    decisions as before (the unlisted tool's setpoint refused) and counts them too; with
+    another RUST_LOG, what that shows and no decision."""
+    make_certs(certs, ("gcs",))
+    decision = ("Using cached result: \\w+ is unauthorized to Put \\(ingress\\) on "
+                "skyloop/uav1/cmd_vel")
+    got: list[float] = []
+    for rust_log, shown in (("zenoh::net::routing::interceptor::access_control=trace", True),
+                            ("zenoh::net::runtime=info", False)):
+        router = RouterProcess(certs, RUST_LOG=rust_log)
+        try:
+            gcs, sim = router.client("gcs"), router.client("sim")
+            sim.subscribe(keys.CMD_VEL, "uav1", lambda msg: got.append(msg.velocity.x))
+            time.sleep(1.0)
+            gcs.publisher(keys.CMD_VEL, "uav1").put(setpoint(1.0))
+            time.sleep(0.5)
+        finally:
+            out, counters = router.stop()
+        assert got == []
+        assert counters["denied_put_ingress"] == 1, (rust_log, counters)
+        assert bool(re.search(decision, out)) == shown, (rust_log, out[-3000:])
+        assert ("zenoh::net::runtime" in out) != shown, (rust_log, out[-3000:])
 
 
 def test_a_bad_config_file_is_named(tmp_path):
@@ -230,22 +326,48 @@ def test_a_bad_config_file_is_named(tmp_path):
 
 def test_the_stack_flies_on_a_secured_bus(certs, tmp_path):
     """``skyloop up --router --zenoh-config-dir DIR``: the router on a tls endpoint, every
-    node with its own certificate, the bridge's setpoints allowed: episodes fly."""
+    node with its own certificate, the bridge's setpoints allowed: episodes fly. A tool
+    with a later certificate of the CA joins the router once the sim is ready and puts
+    setpoints: the summary and ``--json`` count each one refused, and nothing else."""
     import json
     import subprocess
     import sys
     from pathlib import Path
 
     full = make_certs(tmp_path / "certs")  # every node of a stack, the launcher too
+    make_certs(full, ("gcs",))  # router.json5 written without it: a read-only tool
     root = Path(__file__).resolve().parent.parent
     udp = [str(free_port(socket.SOCK_DGRAM)) for _ in range(4)]
+    hub = f"tls/localhost:{free_port()}"
     cmd = [sys.executable, "-m", "skyloop", "up", "--router", "--zenoh-config-dir", str(full),
-           "--episodes", "1", "--policy", "scripted", "--json", str(tmp_path / "s.json"),
-           "--api-port", udp[0], "--api-local-port", udp[1], "--gcs-port", udp[2],
-           "--gcs-local-port", udp[3]]
-    proc = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=180)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert json.loads((tmp_path / "s.json").read_text())["episodes"] == 1
+           "--hub", hub, "--episodes", "1", "--policy", "scripted", "--json",
+           str(tmp_path / "s.json"), "--api-port", udp[0], "--api-local-port", udp[1],
+           "--gcs-port", udp[2], "--gcs-local-port", udp[3]]
+    proc = subprocess.Popen(cmd, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    n, ready, gcs = 10, threading.Event(), None
+    try:
+        deadline = time.monotonic() + 60.0
+        while gcs is None:
+            try:
+                gcs = client(hub, str(full / "gcs.json5"))
+            except SessionError:
+                assert proc.poll() is None and time.monotonic() < deadline, "no router"
+        gcs.watch_ready("uav1", lambda node, alive: node == "sim" and alive and ready.set())
+        assert ready.wait(120.0), "the sim never got ready"
+        pub = gcs.publisher(keys.CMD_VEL, "uav1")  # the sim subscribes before it is ready
+        for _ in range(n):
+            pub.put(setpoint(1.0))
+            time.sleep(0.01)
+    finally:
+        if gcs is not None:
+            gcs.close()
+        out = proc.communicate(timeout=180)[0]
+    assert proc.returncode == 0, out
+    summary = json.loads((tmp_path / "s.json").read_text())
+    assert summary["episodes"] == 1
+    assert summary["counters"]["router"] == {"denied": n, "denied_put_ingress": n}, summary
+    assert f"refused by the router's access control: {n} message(s) (put ingress {n})" in out
     no_router = subprocess.run([sys.executable, "-m", "skyloop", "up", "--zenoh-config-dir",
                                 str(full)], cwd=root, capture_output=True, text=True, timeout=60)
     assert no_router.returncode == 2 and "needs --router" in no_router.stderr
