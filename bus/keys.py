@@ -31,6 +31,7 @@ ACTOR = "actor"
 STATUS = "status"
 PARAMS = "params"
 COMMAND = "command"
+STEP_RECORD = "step_record"
 
 
 @dataclass(frozen=True)
@@ -79,6 +80,9 @@ TOPICS: dict[str, Topic] = {
               "a vehicle parameter set (bus.params names), applied by the sim"),
         Topic(COMMAND, "skyloop_msgs/msg/VehicleCommand",
               "commander requests: a Zenoh query answered by the sim with CommandAck"),
+        Topic(STEP_RECORD, "skyloop_msgs/msg/StepRecord",
+              "the episode core's record of each step: D_pre, D_cur, altitude, h, g, "
+              "collision, outcome (what eq. 3.5 and the outcome derive from)"),
     )
 }
 

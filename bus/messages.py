@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from bus.task import TASK, TaskSpec
+from bus.task import TASK, StepRecord, TaskSpec
 
 MSG_DIR = Path(__file__).resolve().parent / "msg"
 PROJECT_PACKAGE = "skyloop_msgs"
@@ -48,8 +48,9 @@ PARAMETER = f"{PROJECT_PACKAGE}/msg/Parameter"
 VEHICLE_COMMAND = f"{PROJECT_PACKAGE}/msg/VehicleCommand"
 COMMAND_ACK = f"{PROJECT_PACKAGE}/msg/CommandAck"
 VELOCITY_SETPOINT = f"{PROJECT_PACKAGE}/msg/VelocitySetpoint"
+STEP_RECORD = f"{PROJECT_PACKAGE}/msg/StepRecord"
 PROJECT_TYPES = (OBSERVATION, EPISODE_EVENT, STEP_CLOCK, ACTOR_WEIGHTS, VEHICLE_STATUS,
-                 PARAMETER, VEHICLE_COMMAND, COMMAND_ACK, VELOCITY_SETPOINT)
+                 PARAMETER, VEHICLE_COMMAND, COMMAND_ACK, VELOCITY_SETPOINT, STEP_RECORD)
 
 START, END = 0, 1
 OUTCOMES = {"none": 0, "success": 1, "collision": 2, "timeout": 3, "aborted": 4}
@@ -93,6 +94,7 @@ Parameter = _T[PARAMETER]
 VehicleCommand = _T[VEHICLE_COMMAND]
 CommandAck = _T[COMMAND_ACK]
 VelocitySetpoint = _T[VELOCITY_SETPOINT]
+StepRecordMsg = _T[STEP_RECORD]
 FRAME_BODY, FRAME_WORLD = VelocitySetpoint.FRAME_BODY, VelocitySetpoint.FRAME_WORLD
 _ZERO_COV = np.zeros(36, dtype=np.float64)
 
@@ -462,6 +464,29 @@ def step_clock(step: int, sim_time_s: float, episode: int = 0) -> Any:
     if not math.isfinite(sim_time_s):
         raise ValueError("sim_time_s must be finite")
     return StepClock(sim_time=time_msg(sim_time_s), episode=int(episode), step=int(step))
+
+
+def step_record(record: StepRecord, stamp_s: float) -> Any:
+    """``skyloop_msgs/StepRecord`` of a :class:`bus.task.StepRecord`, stamped ``stamp_s``
+    (the stack time after the step)."""
+    return StepRecordMsg(header=header(stamp_s, "world"), episode=int(record.episode),
+                         step=int(record.step), distance_before=record.distance_before,
+                         distance=record.distance, altitude=record.altitude, h=record.h,
+                         g=record.g, collided=record.collided,
+                         outcome=OUTCOMES[record.outcome or "none"])
+
+
+def step_record_values(msg: Any) -> StepRecord:
+    """``StepRecord`` message -> :class:`bus.task.StepRecord`; ``ValueError`` on an
+    outcome it cannot carry (aborted, unknown) or a non-finite value."""
+    outcome = OUTCOME_NAMES.get(int(msg.outcome))
+    if outcome is None or outcome == "aborted":
+        raise ValueError(f"step record outcome {msg.outcome}")
+    values = (msg.distance_before, msg.distance, msg.altitude, msg.h, msg.g)
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError("non-finite step record")
+    return StepRecord(int(msg.episode), int(msg.step), *(float(v) for v in values),
+                      bool(msg.collided), None if outcome == "none" else outcome)
 
 
 def actor_weights(blob: bytes | bytearray | memoryview | np.ndarray, version: int,

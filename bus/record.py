@@ -20,8 +20,8 @@ over separate Zenoh links, so the sim's END can overtake the last observation or
 setpoint of that episode (seen under load: the episode then lacked its last observation
 and was skipped when training from the log). The writer thread holds a vehicle's END
 until that vehicle's next START arrives or ``end_grace_s`` (0.25 s) passes; step topics
-(clock, odometry, truth, scan, observation, setpoint) arriving meanwhile are written
-before it, anything else (status, actor weights, ...) right after it, so between
+(clock, odometry, truth, scan, observation, setpoint, step record) arriving meanwhile are
+written before it, anything else (status, actor weights, ...) right after it, so between
 episodes as before; stopping writes what is held.
 
 The log's 3D view (``view``, a :class:`~bus.ros_view.RosView`; ``skyloop record`` has
@@ -337,7 +337,7 @@ def _episode_event(key_expr: str, data: bytes) -> tuple[str, int] | None:
 
 
 _STEP_TOPICS = frozenset((keys.CLOCK, keys.ODOM, keys.TRUTH, keys.LIDAR_POINTS,
-                          keys.OBSERVATION, keys.CMD_VEL))
+                          keys.OBSERVATION, keys.CMD_VEL, keys.STEP_RECORD))
 
 
 def _step_topic(key_expr: str) -> tuple[str | None, bool]:

@@ -6,7 +6,14 @@ navigation task (abr-method.md, "Task").
 - the action: body-horizontal (vx, vy, vz, yaw_rate), each in [-max_action, max_action];
 - the episode limits and the outcome: a collision ends an episode, reaching within
   ``goal_radius`` of the goal at an altitude not above ``goal_max_altitude`` is success
-  (both terminal), ``max_steps`` control steps is a timeout (a truncation, not terminal).
+  (both terminal), ``max_steps`` control steps is a timeout (a truncation, not terminal);
+- the goal angles h and g (:func:`goal_angles`) the observation and eq. 3.5 take;
+- the step record (:class:`StepRecord`): what the simulator's episode core
+  (``sitl.episode.EpisodeSim.record``) says of each control step -- D_pre, D_cur,
+  altitude, h, g, collision and outcome -- from which the outcome, the termination and
+  eq. 3.5's reward (``policy.algorithms.rewards.step_reward``) all derive, in the env,
+  in the simulator node (which publishes it, ``skyloop/<vehicle>/step_record``) and in
+  training from logs.
 
 The simulator (``sitl``), perception, the in-process env, training, rollouts, the logs'
 readers and the policy node all read these values from here (``TASK``, or a ``TaskSpec``
@@ -16,10 +23,17 @@ or 300 itself.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
-__all__ = ["OUTCOME_LIMITS", "TASK", "TaskSpec", "episode_outcome"]
+__all__ = ["MIN_SPEED", "OUTCOME_LIMITS", "TASK", "StepRecord", "TaskSpec", "episode_outcome",
+           "goal_angles"]
+
+#: Horizontal speed (m/s) below which g is measured from the heading instead of the
+#: velocity (the velocity direction of a hovering UAV is estimator noise).
+MIN_SPEED = 0.1
 
 #: Of the limits an episode runs under and its log records (``EpisodeEvent`` START:
 #: max_steps, goal_radius, goal_max_altitude), those that decide success, hence the
@@ -74,6 +88,14 @@ class TaskSpec:
             return "timeout"
         return None
 
+    def step_record(self, episode: int, step: int, distance_before: float, distance: float,
+                    altitude: float, h: float, g: float, collided: bool) -> StepRecord:
+        """The record of one control step under this task: its outcome is
+        :meth:`outcome` of it (``step`` control steps taken)."""
+        return StepRecord(int(episode), int(step), float(distance_before), float(distance),
+                          float(altitude), float(h), float(g), bool(collided),
+                          self.outcome(collided, distance, altitude, step))
+
     def limits_mismatch(self, recorded: dict[str, float] | None) -> str | None:
         """Why an episode run under the ``recorded`` limits (``bus.messages.episode_limits``)
         cannot train under this task, or None when it can (the same ``OUTCOME_LIMITS``)."""
@@ -102,6 +124,78 @@ class TaskSpec:
 
 
 TASK = TaskSpec()
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """One control step of an episode as the simulator's episode core judged it: every
+    input of eq. 3.5's base reward, the collision and the outcome (``TaskSpec.outcome``).
+    Built by :meth:`TaskSpec.step_record` (``sitl.episode.EpisodeSim.record``), carried
+    on the bus and in logs as ``skyloop_msgs/StepRecord`` (``bus.messages.step_record``).
+    Distances and altitude are of the *true* pose, h and g of the *estimate* (what the
+    observation holds), all after the step."""
+
+    episode: int  # the episode's index (the EpisodeEvent's)
+    step: int  # control steps taken in the episode: 1 after the first
+    distance_before: float  # m, D_pre: true distance to the goal before the step
+    distance: float  # m, D_cur: after it
+    altitude: float  # m, true z after the step
+    h: float  # deg in [0, 360): heading to the goal's direction (goal_angles)
+    g: float  # deg in [0, 360): horizontal velocity to the goal's direction
+    collided: bool
+    outcome: str | None  # success, collision, timeout; None while the episode goes on
+
+    @property
+    def goal_reached(self) -> bool:
+        return self.outcome == "success"
+
+    @property
+    def terminated(self) -> bool:
+        """Terminal for the critic target: success or collision (a timeout is not)."""
+        return self.outcome in ("success", "collision")
+
+    @property
+    def truncated(self) -> bool:
+        return self.outcome == "timeout"
+
+
+def _wrap_deg(angle_rad: float) -> float:
+    """Radians -> degrees in [0, 360) (guarding the float rounding of -tiny % 360)."""
+    deg = math.degrees(angle_rad) % 360.0
+    return 0.0 if deg >= 360.0 else deg
+
+
+def goal_angles(
+    position: Sequence[float],
+    yaw: float,
+    velocity: Sequence[float],
+    goal: Sequence[float],
+    min_speed: float = MIN_SPEED,
+) -> tuple[float, float]:
+    """The observation angles (h_deg, g_deg), each in [0, 360).
+
+    World frame ENU, ``yaw`` in radians (0 = facing east, counterclockwise positive).
+    Both angles are measured **counterclockwise** (seen from above) from the reference
+    direction to the horizontal direction of the goal ``goal - position``: a goal
+    straight ahead gives 0, to the left 90, behind 180, to the right 270.
+
+    - h: reference = the UAV's heading ``(cos yaw, sin yaw)``.
+    - g **[choice]**: reference = the UAV's horizontal velocity. When the horizontal
+      speed is below ``min_speed`` (default 0.1 m/s, e.g. hovering at episode start)
+      the velocity direction is noise, so the heading is used instead and g = h.
+    - When the goal is horizontally at the UAV's position (its direction undefined),
+      both angles are 0.
+    """
+    dx = float(goal[0]) - float(position[0])
+    dy = float(goal[1]) - float(position[1])
+    if dx == 0.0 and dy == 0.0:
+        return 0.0, 0.0
+    bearing = math.atan2(dy, dx)
+    h = _wrap_deg(bearing - float(yaw))
+    vx, vy = float(velocity[0]), float(velocity[1])
+    if math.hypot(vx, vy) < min_speed:
+        return h, h
+    return h, _wrap_deg(bearing - math.atan2(vy, vx))
 
 
 def episode_outcome(goal_reached: bool, collision: bool) -> str:

@@ -14,15 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from bus.task import TASK
+from bus.task import MIN_SPEED, TASK, goal_angles  # noqa: F401 - the goal angles' home
 from perception.faces import ENCODINGS, face_values
 from perception.icosahedron import N_FACES, TruncatedIcosahedron
 
 OBS_DIM = TASK.obs_dim  # the faces, z, h, g
 assert TASK.faces == N_FACES, "the task's faces are the truncated icosahedron's"
-#: Horizontal speed (m/s) below which g is measured from the heading instead of the
-#: velocity (the velocity direction of a hovering UAV is estimator noise).
-MIN_SPEED = 0.1
 
 
 @dataclass
@@ -79,45 +76,6 @@ def goal_terms(obs: np.ndarray, config: ObservationConfig) -> tuple[float, float
     z, h, g = (float(v) for v in obs[N_FACES:N_FACES + 3])
     return (z * config.altitude_scale, (h * config.angle_scale) % 360.0,
             (g * config.angle_scale) % 360.0)
-
-
-def _wrap_deg(angle_rad: float) -> float:
-    """Radians -> degrees in [0, 360) (guarding the float rounding of -tiny % 360)."""
-    deg = math.degrees(angle_rad) % 360.0
-    return 0.0 if deg >= 360.0 else deg
-
-
-def goal_angles(
-    position: np.ndarray,
-    yaw: float,
-    velocity: np.ndarray,
-    goal: np.ndarray,
-    min_speed: float = MIN_SPEED,
-) -> tuple[float, float]:
-    """The observation angles (h_deg, g_deg), each in [0, 360).
-
-    World frame ENU, ``yaw`` in radians (0 = facing east, counterclockwise positive).
-    Both angles are measured **counterclockwise** (seen from above) from the reference
-    direction to the horizontal direction of the goal ``goal - position``: a goal
-    straight ahead gives 0, to the left 90, behind 180, to the right 270.
-
-    - h: reference = the UAV's heading ``(cos yaw, sin yaw)``.
-    - g **[choice]**: reference = the UAV's horizontal velocity. When the horizontal
-      speed is below ``min_speed`` (default 0.1 m/s, e.g. hovering at episode start)
-      the velocity direction is noise, so the heading is used instead and g = h.
-    - When the goal is horizontally at the UAV's position (its direction undefined),
-      both angles are 0.
-    """
-    dx = float(goal[0]) - float(position[0])
-    dy = float(goal[1]) - float(position[1])
-    if dx == 0.0 and dy == 0.0:
-        return 0.0, 0.0
-    bearing = math.atan2(dy, dx)
-    h = _wrap_deg(bearing - float(yaw))
-    vx, vy = float(velocity[0]), float(velocity[1])
-    if math.hypot(vx, vy) < min_speed:
-        return h, h
-    return h, _wrap_deg(bearing - math.atan2(vy, vx))
 
 
 def build_observation(

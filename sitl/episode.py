@@ -10,6 +10,11 @@ Reset draws, from ``numpy.random.default_rng(seed)`` (the same generator Gymnasi
 yaw uniform in [-pi, pi), then one sub-seed for the vehicle's sensors (the LiDAR noise
 uses sub-seed + 1). With a family or a mixture of worlds (``sitl.families``), reset
 first draws the world (family, then seed) from the same generator.
+
+After each control step of an episode, :meth:`EpisodeSim.record` gives the step's
+:class:`bus.task.StepRecord` (D_pre, D_cur, altitude, h, g, collision, outcome under a
+``TaskSpec``): the one place the env and the simulator node take the outcome, the
+termination and (through ``policy.algorithms.rewards.step_reward``) the reward from.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bus.task import StepRecord, TaskSpec, goal_angles
 from sitl.families import WorldSource
 from sitl.lidar import Lidar, LidarConfig
 from sitl.vehicle import Vehicle, VehicleConfig
@@ -62,6 +68,8 @@ class EpisodeSim:
         self.steps = 0
         self.episodes = 0
         self.collided = False
+        # true distances to the goal before and after the last step (D_pre, D_cur)
+        self.distance_before = self.distance = 0.0
 
     def use_world(self, name: str) -> None:
         """Fly world ``name`` from the next episode on (built once; the last few kept)."""
@@ -92,6 +100,7 @@ class EpisodeSim:
         self.vehicle.reset(self.start, yaw, seed=sub_seed)
         self.lidar.reseed(sub_seed + 1)
         self.time, self.steps, self.collided = 0.0, 0, False
+        self.distance_before = self.distance = self.goal_distance()
 
     def step_body(self, command: np.ndarray) -> bool:
         """Fly one control period on a body-horizontal command; returns ``collided``.
@@ -107,6 +116,7 @@ class EpisodeSim:
         self.start = self.vehicle.truth.position.copy()
         self.goal = np.asarray(goal, dtype=float).copy()
         self.steps, self.collided = 0, False
+        self.distance_before = self.distance = self.goal_distance()
 
     def place_on_ground(self, x: float, y: float, yaw: float) -> None:
         """Stand the vehicle on the terrain at (x, y), motors stopped (the simulator
@@ -123,7 +133,19 @@ class EpisodeSim:
         self.steps += 1
         self.collided = self.world.collides(self.vehicle.truth.position,
                                             self.config.body_radius, self.time)
+        self.distance_before, self.distance = self.distance, self.goal_distance()
         return self.collided
+
+    def record(self, task: TaskSpec, episode: int = 0) -> StepRecord:
+        """The :class:`~bus.task.StepRecord` of the step just flown, as episode
+        ``episode`` of ``task``: D_pre and D_cur (true distances to the goal before and
+        after it), the true altitude, h and g from the *estimate* (as the observation
+        has them, :func:`bus.task.goal_angles`), ``collided``, and ``task.outcome`` of it
+        after :attr:`steps` steps."""
+        est = self.vehicle.estimate
+        h, g = goal_angles(est.position, est.yaw, est.velocity, self.goal)
+        return task.step_record(episode, self.steps, self.distance_before, self.distance,
+                                float(self.vehicle.truth.position[2]), h, g, self.collided)
 
     def scan(self) -> np.ndarray:
         """A VLP-16 scan at the true pose, now: float32 (N, 3) in the sensor frame."""

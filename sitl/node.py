@@ -45,8 +45,10 @@ the commander is in OFFBOARD before go, the node waits (nothing answers steps ye
   event (STATUSTEXT at the bridge), nothing changes.
 
 Per control step of an episode it publishes, in this order (one session, express off):
-the step clock, the estimated odometry, the ground truth and the VLP-16 scan. Episode
-START precedes step 0; END (outcome, steps) follows the last step, after the terminal
+the step clock, the estimated odometry, the ground truth and the VLP-16 scan; after the
+step is flown, its record (``step_record``: :meth:`EpisodeSim.record`, the one source of
+the outcome here as in the env; stamped with the next step's time). Episode START
+precedes step 0; END (outcome, steps) follows the last step's record, after the terminal
 pose on ``truth``. **Stamps** are the stack time ``g * control_period``, ``g`` counting
 episode steps over the run (integer nanoseconds, exact); the commander's own clock
 counts every control step flown (ground phase included) and never goes backwards.
@@ -128,7 +130,8 @@ class SimNode:
         self.clock = StackClock(round(self.sim.vehicle.config.control_period * 1e9))
         v = c.vehicle
         pub = {t: bus.publisher(t, v) for t in (keys.EPISODE, keys.CLOCK, keys.ODOM,
-                                                 keys.TRUTH, keys.LIDAR_POINTS)}
+                                                 keys.TRUTH, keys.LIDAR_POINTS,
+                                                 keys.STEP_RECORD)}
         self.pub = pub
         self.cmds = bus.inbox(keys.CMD_VEL, v, maxsize=256)
         goal_inbox = bus.inbox(keys.GOAL, v, maxsize=16)

@@ -59,11 +59,12 @@ class EpisodeRunner:
         missed = self.gate.missed
         self.rejoin.episode_started()
         while True:
-            collided = self.step.tick(i)
+            self.step.tick(i)
             truth = s.vehicle.truth
             path.append(truth.position.copy())
-            outcome = task.outcome(collided, s.goal_distance(), float(truth.position[2]),
-                                   s.steps)
+            record = s.record(task, i)  # the outcome by the task's rule, and the log's
+            self.pub[keys.STEP_RECORD].put(m.step_record(record, clock.stamp()))
+            outcome = record.outcome
             offboard = self.commander.state == State.OFFBOARD
             broken = None if c.free_flight else \
                 "the vehicle left OFFBOARD" if flown and not offboard else \

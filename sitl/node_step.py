@@ -193,7 +193,7 @@ class ControlStep:
             collided = s.step_world(np.array(out, dtype=np.float64), motors)
         clock.advance(episode is not None)
         if collided and not env_rules and self._touchdown():
-            collided = False
+            collided = s.collided = False  # a landing: the step's record says so too
         self.resume = cmdr.state  # the mode the next placed episode continues in
         if collided:
             cmdr.collision(clock.now())

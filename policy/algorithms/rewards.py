@@ -13,6 +13,9 @@ Per step, when not collided (eq. 3.5)::
     v_x = 360 - x if x > 180 else x              (x in degrees, [0, 360))
 
 On collision the reward is ``RewardConfig.collision`` (-50) and the episode is terminal.
+:func:`step_reward` computes both cases from a step's :class:`bus.task.StepRecord`
+(what the simulator's episode core says of the step, live or logged): the env, training,
+rollouts and training from logs take their per-step reward from it.
 
 Goal-reward variants (what happens to an episode's rewards when it reached the goal),
 all applied when the episode ends by rewriting the rewards of its transitions in the
@@ -31,14 +34,18 @@ This module is numpy-only (no torch) so the environment can import it cheaply.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from bus.task import StepRecord
 
 __all__ = [
     "RewardConfig",
     "base_reward",
     "collision_reward",
+    "step_reward",
     "fold_angle",
     "EpisodeStore",
     "GoalReward",
@@ -136,6 +143,16 @@ def collision_reward(config: RewardConfig) -> tuple[float, dict[str, float]]:
     parts = {"progress": 0.0, "altitude": 0.0, "heading": 0.0, "velocity_heading": 0.0}
     parts["collision"] = float(config.collision)
     return float(config.collision), parts
+
+
+def step_reward(record: StepRecord, config: RewardConfig) -> tuple[float, dict[str, float]]:
+    """Eq. 3.5 of one step from its record alone: ``r_collided`` (:func:`collision_reward`)
+    when ``record.collided``, else :func:`base_reward` (D_pre = ``distance_before``,
+    D_cur = ``distance``, z = ``altitude``, ``h``, ``g``)."""
+    if record.collided:
+        return collision_reward(config)
+    return base_reward(record.distance_before, record.distance, record.altitude,
+                       record.h, record.g, config)
 
 
 # --------------------------------------------------------------------------- variants

@@ -7,12 +7,14 @@ One control step (0.1 s) is the same pipeline the process graph runs, in one pro
     -> collision check of the true body sphere (sitl.world)
     -> VLP-16 scan at the true pose (sitl.lidar)
     -> 32 icosahedron faces + altitude, h, g from the estimate (perception)
-    -> the stacked state (perception.FrameStacker, EnvConfig.frames), reward eq. 3.5
-       (policy.algorithms.rewards)
+    -> the step's record (``EpisodeSim.record``: D_pre, D_cur, altitude, h, g,
+       collision, outcome; ``info["record"]``) -> reward eq. 3.5 from it
+       (``policy.algorithms.rewards.step_reward``)
+    -> the stacked state (perception.FrameStacker, EnvConfig.frames)
 
-Episode ends (abr-method.md): goal reached (within ``goal_radius`` = 2 m of the goal
-and altitude not above ``goal_max_altitude`` = 6 m) or collision are terminal; 300 steps
-is a truncation (not terminal for the critic target).
+Episode ends (abr-method.md, ``TaskSpec.outcome`` in the record): goal reached (within
+``goal_radius`` = 2 m of the goal and altitude not above ``goal_max_altitude`` = 6 m) or
+collision are terminal; 300 steps is a truncation (not terminal for the critic target).
 
 Actions: NaN or inf raise ``ValueError`` (a clear error rather than a silently held
 setpoint); finite values outside [-2, 2] are clipped. Actions are rounded to float32
@@ -28,10 +30,10 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
-from bus.task import TASK, TaskSpec
+from bus.task import TASK, StepRecord, TaskSpec
 from perception.icosahedron import TruncatedIcosahedron
 from perception.observation import FrameStacker, ObservationConfig, observation_from_scan
-from policy.algorithms.rewards import RewardConfig, base_reward, collision_reward
+from policy.algorithms.rewards import RewardConfig, step_reward
 from sitl.episode import EpisodeConfig, EpisodeSim, body_to_world
 from sitl.render_fast import FastRenderer
 
@@ -108,6 +110,7 @@ class UavNavEnv(gymnasium.Env):
         self._points = np.zeros((0, 3), np.float32)
         self.path: list[np.ndarray] = []
         self.steps = 0
+        self.record: StepRecord | None = None  # the last step's (None before the first)
 
     # -- Gymnasium API ---------------------------------------------------------------
 
@@ -120,9 +123,9 @@ class UavNavEnv(gymnasium.Env):
         self.sim.reset(self.np_random, goal=(options or {}).get("goal"))
         self.world, self.lidar = self.sim.world, self.sim.lidar  # a drawn world: its own
         self.steps = 0
+        self.record = None
         self.stacker.reset()
         self.path = [self.vehicle.truth.position.copy()]
-        self._distance = self._goal_distance()
         obs = self._observe()
         return self.stacker.push(obs), self._info(collided=False, reached=False, parts={})
 
@@ -134,26 +137,16 @@ class UavNavEnv(gymnasium.Env):
             raise ValueError(f"action must be finite, got {action.tolist()}")
         action = np.clip(action, -MAX_ACTION, MAX_ACTION).astype(np.float32)
 
-        collided = self.sim.step_body(action)
+        self.sim.step_body(action)
         self.steps += 1
-        truth = self.vehicle.truth
-        self.path.append(truth.position.copy())
+        self.path.append(self.vehicle.truth.position.copy())
         obs = self._observe()
-        d_prev, self._distance = self._distance, self._goal_distance()
-        if collided:
-            reward, parts = collision_reward(self.reward_config)
-        else:
-            reward, parts = base_reward(
-                d_prev, self._distance, float(truth.position[2]), self._h, self._g,
-                self.reward_config,
-            )
-        outcome = self.task.outcome(collided, self._distance, float(truth.position[2]),
-                                    self.steps)
-        reached = outcome == "success"
-        terminated = outcome in ("success", "collision")
-        truncated = outcome == "timeout"
-        info = self._info(collided=collided, reached=reached, parts=parts)
-        return self.stacker.push(obs), float(reward), terminated, truncated, info
+        # episode 0: an env numbers no episodes (same seed, same info; a log renumbers)
+        self.record = rec = self.sim.record(self.task)
+        reward, parts = step_reward(rec, self.reward_config)
+        info = self._info(collided=rec.collided, reached=rec.goal_reached, parts=parts)
+        info["record"] = rec
+        return self.stacker.push(obs), float(reward), rec.terminated, rec.truncated, info
 
     def render(self) -> np.ndarray | None:
         """The current frame as RGB uint8 with ``render_mode="rgb_array"`` (else None).
@@ -179,10 +172,7 @@ class UavNavEnv(gymnasium.Env):
                     max_steps=self.task.max_steps, goal_radius=self.task.goal_radius,
                     goal_max_altitude=self.task.goal_max_altitude,
                     lidar_range=self.config.episode.lidar_max_range)
-            outcome = None
-            if self.steps:
-                outcome = self.task.outcome(self.sim.collided, self._distance,
-                                            float(truth.position[2]), self.steps)
+            outcome = self.record.outcome if self.record is not None else None
             return self._renderer.frame(
                 position=truth.position, rotation=truth.rotation, path=np.array(self.path),
                 start=self.start, goal=self.goal, points=self._points,
@@ -206,9 +196,6 @@ class UavNavEnv(gymnasium.Env):
 
     # -- internals -------------------------------------------------------------------
 
-    def _goal_distance(self) -> float:
-        return self.sim.goal_distance()
-
     @property
     def start(self) -> np.ndarray:
         return self.sim.start
@@ -221,14 +208,14 @@ class UavNavEnv(gymnasium.Env):
         """One 35-attribute observation: faces from the scan, z/h/g from the estimate."""
         est = self.vehicle.estimate
         self._points = self.sim.scan()
-        obs, self._faces, self._h, self._g = observation_from_scan(
+        obs, self._faces, _, _ = observation_from_scan(
             self._points, self.ico, est.position, est.yaw, est.velocity, self.goal,
             self.obs_config)
         return obs
 
     def _info(self, *, collided: bool, reached: bool, parts: dict[str, float]) -> dict[str, Any]:
         return {
-            "distance_to_goal": self._distance,
+            "distance_to_goal": self.sim.distance,
             "collision": bool(collided),
             "goal_reached": bool(reached),
             "reward_components": dict(parts),
