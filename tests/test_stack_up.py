@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -66,16 +67,19 @@ def env_episodes():
     episodes = []
     for i in range(EPISODES):
         state, _ = env.reset(seed=SEED + i)
-        actions, done, info = [], False, {}
+        actions, rewards, records, done, info = [], [], [], False, {}
         while not done:
             a = np.clip(np.asarray(controller(state), np.float64), -2, 2).astype(np.float32)
             actions.append(a)
-            state, _, term, trunc, info = env.step(a)
+            state, r, term, trunc, info = env.step(a)
+            rewards.append(r)
+            records.append(replace(info["record"], episode=i))
             done = term or trunc
         outcome = "collision" if info["collision"] else \
             "success" if info["goal_reached"] else "timeout"
         episodes.append({"actions": np.array(actions), "path": np.array(env.path),
-                         "outcome": outcome, "steps": env.steps})
+                         "outcome": outcome, "steps": env.steps, "rewards": rewards,
+                         "records": records})
     return episodes
 
 
@@ -145,6 +149,25 @@ def test_stack_log_trains_from_logs(runs, env_episodes):
     report = load_logs([mcap], buf, make_goal_reward("abr", RewardConfig()), RewardConfig())
     assert report.episodes_used == EPISODES, report.skipped
     assert report.transitions == sum(e["steps"] for e in env_episodes) == len(buf)
+
+
+@pytest.mark.slow
+def test_stack_step_records_are_the_envs_and_give_its_rewards(runs, env_episodes):
+    """The sim publishes the episode core's record of every step; the recorder logs it;
+    the records equal the env's (lockstep parity) and training from the log takes the
+    env's rewards from them, the last step's included (whose observation the stack log
+    lacks)."""
+    from policy.algorithms.rewards import RewardConfig
+    from policy.logs.offline import episode_steps, rebuild_episode
+
+    _, mcap, _ = runs["peer"]
+    episodes, _ = read_episodes(mcap)
+    for ep, ref in zip(episodes, env_episodes, strict=True):
+        records = [m.step_record_values(x.decode()) for x in ep.topic("step_record")]
+        assert records == ref["records"]
+        assert episode_steps(ep).records is not None
+        np.testing.assert_array_equal(rebuild_episode(ep, RewardConfig()).rewards,
+                                      ref["rewards"])
 
 
 def episode_messages(mcap: Path) -> list:

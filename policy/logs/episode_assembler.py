@@ -12,8 +12,12 @@ bridge): the ``truth`` poses by stamp (every message of a step carries the step'
 time; START carries step 0's and END step T's, so steps 0 .. T are the T + 1 truth
 stamps from START's to END's; an episode's last stamp is also the next one's first,
 so a stamp can hold two poses, in arrival order), body-frame ``cmd_vel`` by the stamp of
-its step, and observations by their (episode, step) fields. A closed episode waits up to ``grace_s``
-for messages still in flight; then it is emitted if whole, else skipped with a reason.
+its step, and observations and step records by their (episode, step) fields. A closed
+episode waits up to ``grace_s`` for messages still in flight; then it is emitted if whole,
+else skipped with a reason. Step records (the sim's ``step_record``, steps 1 .. T) are
+part of a whole episode once the vehicle has sent one (a sim that publishes them); from a
+vehicle that never has, episodes come without them and their rewards are recomputed
+(:mod:`policy.logs.transitions`).
 
 Skipped (counted in ``skipped`` by reason, never raised): an END without its START (the
 learner joined mid-episode), a START without END (the next START came first), truth
@@ -31,10 +35,10 @@ import numpy as np
 
 from bus import keys
 from bus import messages as m
-from bus.task import TASK
+from bus.task import TASK, StepRecord
 from policy.logs.transitions import EpisodeSteps, Pose
 
-TOPICS = (keys.EPISODE, keys.OBSERVATION, keys.TRUTH, keys.CMD_VEL)
+TOPICS = (keys.EPISODE, keys.OBSERVATION, keys.TRUTH, keys.CMD_VEL, keys.STEP_RECORD)
 
 
 @dataclass
@@ -68,6 +72,8 @@ class _Vehicle:
             OrderedDict()
         self.commands: OrderedDict[int, tuple] = OrderedDict()
         self.truth: OrderedDict[int, list[Pose]] = OrderedDict()
+        self.records: OrderedDict[tuple[int, int], StepRecord] = OrderedDict()
+        self.sends_records = False  # a step record has come from this vehicle
         self.last_end_stamp: int | None = None
 
 
@@ -114,6 +120,10 @@ class EpisodeAssembler:
                 if not np.all(np.isfinite(action)):
                     raise ValueError("non-finite command")
                 self._put(v.commands, m.nanoseconds(msg.header.stamp), action)
+            elif topic == keys.STEP_RECORD:
+                record = m.step_record_values(msg)
+                self._put(v.records, (record.episode, record.step), record)
+                v.sends_records = True
             else:
                 self.ignored += 1
         except (ValueError, TypeError, AttributeError, KeyError):
@@ -181,17 +191,23 @@ class EpisodeAssembler:
         got = {k: v.observations.get((ep.index, k)) for k in range(T + 1)}
         if any(got[k] is None for k in range(T)):
             return None, "observations"
+        records = None
+        if v.sends_records:
+            records = {k: v.records.get((ep.index, k)) for k in range(1, T + 1)}
+            if any(r is None for r in records.values()):
+                return None, "step records"
         obs = {k: o[0] for k, o in got.items() if o is not None}
         scalings = [o[1] for o in got.values() if o is not None]
         truth = [v.truth[stamps[0]][first]] + [v.truth[s][0] for s in stamps[1:]]
         return EpisodeSteps(ep.goal, T, ep.outcome, obs, truth, actions, scalings,
-                            ep.limits), None
+                            ep.limits, records), None
 
     def _forget(self, v: _Vehicle, index: int, stamp: int) -> None:
         """Drop the observations of episodes up to ``index`` and the poses and commands
         stamped before ``stamp`` (an episode's last stamp is the next one's first)."""
-        for key in [k for k in v.observations if k[0] <= index]:
-            del v.observations[key]
+        for table in (v.observations, v.records):
+            for key in [k for k in table if k[0] <= index]:
+                del table[key]
         for table in (v.commands, v.truth):
             for key in [k for k in table if k < stamp]:
                 del table[key]

@@ -1,19 +1,21 @@
 """Log in-process env episodes in the stack's episode-log format (``bus.log``).
 
 The same topics and contract as a stack run (see :mod:`policy.logs.offline`): episode
-START/END, one observation, one truth pose per step and one ``cmd_vel`` per action, so
-``skyloop train --from-logs`` learns from in-process runs and stack runs alike.
+START/END, one observation, one truth pose per step, one ``cmd_vel`` per action and the
+env's step record (``step_record``) after each step, so ``skyloop train --from-logs``
+learns from in-process runs and stack runs alike.
 Times are sim times (0.1 s a step) so the file is byte-identical for the same seed.
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from bus import messages as m
-from bus.keys import CMD_VEL, EPISODE, OBSERVATION, TRUTH
+from bus.keys import CMD_VEL, EPISODE, OBSERVATION, STEP_RECORD, TRUTH
 from bus.log import EpisodeLogWriter
 from bus.task import TASK, episode_outcome
 from perception.observation import scaling_fields
@@ -56,6 +58,7 @@ def log_env_episodes(env, controller: Controller, episodes: int, seed: int, out_
             put(CMD_VEL, m.velocity_setpoint(action[:3], float(action[3]), t, body=True), t)
             state, _, terminated, truncated, info = env.step(action)
             k, t = k + 1, t + 0.1
+            put(STEP_RECORD, m.step_record(replace(base.record, episode=i), t), t)
             snapshot(i, k, t, state[-1])
             if terminated or truncated:
                 break

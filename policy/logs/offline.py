@@ -12,15 +12,18 @@ the messages this module rebuilds transitions from (the *log contract*):
 - ``cmd_vel`` (``VelocitySetpoint``) in the body frame with a yaw rate: the policy's
   action of each step 0 .. T-1, body-horizontal (forward, left, up, yaw_rate), as the
   env and the stack apply it (world-frame or heading setpoints are not policy actions);
-- ``truth``: the true pose per step 0 .. T (for the distance and altitude terms).
+- ``truth``: the true pose per step 0 .. T (for the distance and altitude terms);
+- ``step_record`` (``StepRecord``, logs made since it exists): the simulator's record of
+  each step 1 .. T (D_pre, D_cur, altitude, h, g, collision, outcome), joined by its own
+  (episode, step) fields.
 
-Stack logs end an episode without a scan after the last step; its observation is then
-approximated by :func:`terminal_observation`. Rewards are recomputed, never read from
-the log, so one log serves every goal reward:
-eq. 3.5 from the truth distances and altitude and the logged h, g un-scaled with the
-recorded scaling (float32 values, so recomputed rewards agree with the env's to about
-1e-5), the collision reward on a collision end, then TR/NGR/EGR/ABR rewrite the
-episode as in online training. States are the 3-frame stacks, zero-padded at the start.
+Stack logs end an episode without a scan after the last step; its observation (the last
+next state) is then approximated by :func:`terminal_observation`. Rewards are eq. 3.5 of
+each step's record where the log has records, else recomputed from the truth distances
+and altitude and the logged h, g un-scaled with the recorded scaling; the two are
+checked against each other where both exist (:mod:`policy.logs.transitions`); then
+TR/NGR/EGR/ABR rewrite the episode as in online training, so one log serves every goal
+reward. States are the 3-frame stacks, zero-padded at the start.
 
 Offline data has no exploration of the learner's own: ``--bc`` trains TD3+BC
 (Fujimoto & Gu 2021, eq. 3: pi = argmax E[lambda Q(s, pi(s)) - (pi(s) - a)^2],
@@ -39,6 +42,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from bus import keys
 from bus.log import read_episodes
 from bus.log_reader import EpisodeLogReader, log_files
 from bus.messages import (
@@ -49,6 +53,7 @@ from bus.messages import (
     observation_values,
     odometry_values,
     setpoint_values,
+    step_record_values,
 )
 from bus.task import TASK, TaskSpec
 from policy.algorithms.agents import make_goal_reward
@@ -110,9 +115,11 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None,
     if len(actions) != T and commands is not None:
         stamps = [nanoseconds(t.header.stamp) for t in truth_msgs]
         actions = [commands[t] for t in stamps[:T] if t in commands]
+    records = [step_record_values(r.decode()) for r in episode.topic(keys.STEP_RECORD)]
     return EpisodeSteps(goal, T, episode.outcome, obs,
                         [odometry_values(t) for t in truth_msgs], actions,
-                        [observation_scaling(o) for o in obs_msgs], episode_limits(start))
+                        [observation_scaling(o) for o in obs_msgs], episode_limits(start),
+                        {r.step: r for r in records if r.episode == episode.index} or None)
 
 
 def rebuild_episode(episode, config: RewardConfig,
