@@ -232,14 +232,17 @@ def test_the_router_counts_each_refused_setpoint(certs):
     """An unlisted certificate (``skyloop certs --nodes gcs`` after the router's
     configuration) puts N setpoints on ``cmd_vel`` with a publisher (each one refused from
     the rights Zenoh cached for the key) and M more with ``session.put`` on the key and
-    on wildcards (each decided anew): the router counts N + M refusals, the sim gets none
-    of them, and the bridge's setpoints, on the same router, arrive and count nothing.
-    Without RUST_LOG, none of Zenoh's decisions is shown: they are only counted."""
+    on wildcards (each decided anew), and perception (a listed node: Zenoh decides each
+    of its subjects in turn) 2 wildcard puts: the router counts N + M + 2 refusals, the
+    sim gets none of them, and the bridge's setpoints, on the same router, arrive and
+    count nothing. Without RUST_LOG, none of Zenoh's decisions is shown: only counted."""
     make_certs(certs, ("gcs",))
     router = RouterProcess(certs)
     got: list[float] = []
     try:
-        gcs, sim, bridge = (router.client(n) for n in ("gcs", "sim", "bridge"))
+        gcs, sim, bridge, perception = (router.client(n)
+                                        for n in ("gcs", "sim", "bridge", "perception"))
+        perception.publisher(keys.OBSERVATION, "uav1").put(m.observation([0.0] * 35, 0.1))
         # a client sends a put only where a subscriber matches
         sim.subscribe(keys.CMD_VEL, "uav1", lambda msg: got.append(msg.velocity.x))
         time.sleep(1.0)
@@ -252,12 +255,14 @@ def test_the_router_counts_each_refused_setpoint(certs):
         undeclared = ("skyloop/uav1/cmd_vel", "skyloop/**", "skyloop/*/cmd_vel")
         for key in undeclared:
             gcs.session.put(key, m.encode(setpoint(3.0)))
+        for _ in range(2):
+            perception.session.put("skyloop/**", m.encode(setpoint(4.0)))
         wait_for(lambda: len(got) >= n // 5, 5.0, "the bridge's setpoints")
         time.sleep(0.5)  # anything of the tool's that got through would be here by now
     finally:
         out, counters = router.stop()
     assert got == [2.0] * (n // 5)
-    total = n + len(undeclared)
+    total = n + len(undeclared) + 2
     assert counters == {"denied": total, "denied_put_ingress": total}, counters
     assert f"access control refused {total} message(s): Put (ingress) on " \
            f"skyloop/uav1/cmd_vel {n + 1}, " in out, out[-3000:]
