@@ -276,7 +276,10 @@ class StdoutTap:
         out = self._saved
         assert out is not None
         for raw in pipe:  # never stops reading: a full pipe would stall Zenoh's threads
-            level = self.denials.feed(raw.decode("utf-8", "replace"))
+            try:
+                level = self.denials.feed(raw.decode("utf-8", "replace"))
+            except Exception:  # noqa: BLE001 - a line it cannot read is passed on, uncounted
+                level = None
             if out >= 0 and (level is None or level <= self.show_level):
                 try:
                     os.write(out, raw)  # one line: short writes do not happen on a tty/pipe

@@ -560,7 +560,7 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
             kinds = ", ".join(f"{k.removeprefix('denied_').replace('_', ' ')} {v}"
                               for k, v in sorted(router.items()) if k.startswith("denied_"))
             print(f"refused by the router's access control: {router['denied']} message(s) "
-                  f"({kinds}); its last log line names the keys (-v)", flush=True)
+                  f"({kinds}); the router's output (-v) names the keys", flush=True)
         refusals = s["counters"].get("policy", {}).get("refusals", 0)
         if refusals:
             print(f"the policy held the vehicle {refusals} time(s): a vehicle parameter or "
