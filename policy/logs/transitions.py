@@ -39,12 +39,11 @@ from typing import Any
 import numpy as np
 
 from bus.messages import yaw_of
-from bus.task import TASK, StepRecord, TaskSpec
+from bus.task import TASK, StepRecord, TaskSpec, goal_angles
 from perception.observation import (
     FrameStacker,
     ObservationConfig,
     config_from_scaling,
-    goal_angles,
     goal_slots,
     goal_terms,
 )
