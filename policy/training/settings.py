@@ -114,9 +114,10 @@ class TrainConfig:
     """envs stepped in turn by the collector"""
     max_lead: int = 8
     """parallel mode: env steps the collector may run ahead of the updates"""
-    pipeline: Pipeline = "target"
-    """parallel mode: a second learner thread for the next TD targets (target); off: one
-    thread (policy.algorithms.pipeline)"""
+    pipeline: Pipeline = "off"
+    """parallel mode: off, one learner thread (faster in 3 of 4 benchmark runs on two
+    machines, benchmarks/RESULTS.md); target: a second thread for the next TD targets
+    (policy.algorithms.pipeline)"""
     device: str = "cpu"
     """the learner's device: cpu, cuda, cuda:1, ..."""
     # bf16 = mixed precision: bfloat16 matmuls (AMX/AVX512-BF16 CPUs, GPUs), float32
