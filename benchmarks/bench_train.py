@@ -5,9 +5,9 @@ gradient step per env step after the same warm-up:
 
 - ``train_env_steps_per_s``: ``skyloop train`` as it runs by default (a collector process
   beside the learner, ``policy.training.collector``);
-- ``train_no_pipeline_env_steps_per_s``: the same with ``--pipeline off`` (one learner
-  thread; the default, ``target``, has a second for the TD targets,
-  ``policy.algorithms.pipeline``);
+- ``train_pipeline_target_env_steps_per_s``: the same with ``--pipeline target`` (a
+  second learner thread for the TD targets, ``policy.algorithms.pipeline``; the default,
+  ``off``, is one thread: faster in 3 of 4 runs on two machines, ``RESULTS.md``);
 - ``train_fp32_env_steps_per_s``: the default with ``--precision fp32`` (the default is
   "auto": bfloat16 matmuls where the CPU has bfloat16 units; ``precision`` says which it
   took here);
@@ -134,14 +134,14 @@ def _collector(n_envs: int, steps: int) -> float:
 
 def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     steps, repeats = (600, 1) if quick else (3000, 3)
-    rows: dict[str, list[float]] = {"parallel": [], "parallel_no_pipeline": [],
+    rows: dict[str, list[float]] = {"parallel": [], "parallel_target": [],
                                     "parallel_fp32": [], "sync": [], "sync_fp32": [],
                                     "sb3": []}
     torch.set_num_threads(1)
     for r in range(repeats):
         rows["parallel"].append(_ours(False, steps, threads, seed=r))
-        rows["parallel_no_pipeline"].append(_ours(False, steps, threads, seed=r,
-                                                  pipeline="off"))
+        rows["parallel_target"].append(_ours(False, steps, threads, seed=r,
+                                             pipeline="target"))
         rows["parallel_fp32"].append(_ours(False, steps, threads, seed=r, precision="fp32"))
         rows["sync"].append(_ours(True, steps, 1, seed=r))
         rows["sync_fp32"].append(_ours(True, steps, 1, seed=r, precision="fp32"))
@@ -151,7 +151,7 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
     med = {k: statistics.median(v) for k, v in rows.items() if v}
     out: dict[str, Any] = {
         "train_env_steps_per_s": med["parallel"],
-        "train_no_pipeline_env_steps_per_s": med["parallel_no_pipeline"],
+        "train_pipeline_target_env_steps_per_s": med["parallel_target"],
         "train_fp32_env_steps_per_s": med["parallel_fp32"],
         "train_sync_env_steps_per_s": med["sync"],
         "train_sync_fp32_env_steps_per_s": med["sync_fp32"],
