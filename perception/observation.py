@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from bus.task import MIN_SPEED, TASK, goal_angles  # noqa: F401 - the goal angles' home
+from bus.task import TASK, goal_angles
 from perception.faces import ENCODINGS, face_values
 from perception.icosahedron import N_FACES, TruncatedIcosahedron
 
