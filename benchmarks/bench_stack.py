@@ -4,7 +4,12 @@ Keys:
 
 - ``stack_lockstep_steps_per_s``: control steps per second of wall time in lockstep,
   shipped policy on the valley (simulator, perception, policy, MAVLink and bridge each a
-  process; start-up excluded). Goal: >= 300 (30x real time).
+  process; start-up excluded), as ``skyloop up`` runs it (``--pin auto``: the chain on
+  one core, ``skyloop.placement``). Goal: >= 300 (30x real time).
+  ``stack_lockstep_recorded_steps_per_s``: the same with the recorder (``--log-dir``, as
+  ``make demo``). Peers in the same run: both with ``--pin off`` (the scheduler places
+  every process: the code path before pinning). Full mode: 3 repeats, interleaved,
+  medians (each repeat's values under ``stack_lockstep_runs``).
 - ``stack_lockstep_latency_ms_p50``/``_p99``: per step, scan publish -> the step's
   command back at the simulator (the lockstep round trip through every node).
 - ``stack_realtime_latency_ms_p50``/``_p99``: the same in real time (10 Hz, wall
@@ -39,6 +44,7 @@ from __future__ import annotations
 
 import json
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -86,14 +92,32 @@ def env_steps_per_s(episodes: int) -> float:
     return steps / (time.perf_counter() - t0)
 
 
+def lockstep_rows(episodes: int, repeats: int) -> dict[str, list[float]]:
+    """Steps/s of lockstep runs, pinned and not, with and without the recorder,
+    interleaved ``repeats`` times."""
+    rows: dict[str, list[float]] = {}
+    for _ in range(repeats):
+        for rec in (False, True):
+            for pin in ("auto", "off"):
+                with tempfile.TemporaryDirectory() as tmp:
+                    log = ["--log-dir", tmp] if rec else []
+                    s = run_up("--lockstep", "--episodes", str(episodes), "--pin", pin, *log)
+                key = ("recorded_" if rec else "") + ("" if pin == "auto" else "unpinned_")
+                rows.setdefault(key, []).append(round(s["steps_per_s"], 1))
+    return rows
+
+
 def run(quick: bool) -> dict:
     lock = run_up("--lockstep", "--episodes", "1" if quick else "10")
+    rows = lockstep_rows(1 if quick else 10, 1 if quick else 3)
     rt = run_up("--realtime", "--episodes", "1", "--max-steps", "20" if quick else "300")
     if not quick:
         rt = run_up("--realtime", "--episodes", "3")
     cpu = lock.get("cpu_ms_per_step")  # absent where there is no /proc
+    med = {k: statistics.median(v) for k, v in rows.items()}
     return {
-        "stack_lockstep_steps_per_s": lock["steps_per_s"],
+        "stack_lockstep_steps_per_s": med[""],
+        "stack_lockstep_recorded_steps_per_s": med["recorded_"],
         "stack_lockstep_latency_ms_p50": lock.get("latency_ms_p50"),
         "stack_lockstep_latency_ms_p99": lock.get("latency_ms_p99"),
         "stack_realtime_latency_ms_p50": rt.get("latency_ms_p50"),
@@ -101,7 +125,10 @@ def run(quick: bool) -> dict:
         "stack_realtime_late_steps": rt.get("late_steps"),
         "stack_lockstep_cpu_ms_per_step": cpu,
         "stack_lockstep_cpu_ms_per_step_total": round(sum(cpu.values()), 3) if cpu else None,
-        "peers": {"inprocess_env_shipped_policy_steps_per_s": env_steps_per_s(1 if quick else 10)},
+        "stack_lockstep_runs": {f"stack_lockstep_{k}steps_per_s": v for k, v in rows.items()},
+        "peers": {"inprocess_env_shipped_policy_steps_per_s": env_steps_per_s(1 if quick else 10),
+                  "stack_lockstep_unpinned_steps_per_s": med["unpinned_"],
+                  "stack_lockstep_recorded_unpinned_steps_per_s": med["recorded_unpinned_"]},
     }
 
 

@@ -39,6 +39,11 @@ the vehicle's failsafe holds meanwhile, the episode in progress ends ``aborted``
 summary counts the restarts. The sim and the recorder are never restarted (a new sim
 would be a new run; a new recorder a second log).
 
+Where the processes run: ``--pin`` (``skyloop.placement``; default ``auto``): in lockstep
+the chain a step passes through (sim, perception, policy, bridge, router) shares one core
+and the others (recorder, viewer) get the rest, set in each child before it runs
+anything; the summary's ``cpus`` says what the kernel holds for each node at "go".
+
 Where the time goes: at "go" and again at the end of the episodes (as the sim's summary
 line comes, before any node shuts down; failing that, once the sim has exited, before it
 is reaped and before the others are stopped) the launcher reads each child's CPU time
@@ -66,6 +71,7 @@ from typing import Any
 
 from bus.node import Bus
 from bus.session import SessionConfig
+from skyloop.placement import Placement, pin_self, plan
 from skyloop.signals import Stopped, block_until_started, stop_on_sigterm
 from skyloop.stack_settings import UpCommand
 
@@ -131,6 +137,14 @@ def exited(proc: subprocess.Popen) -> bool:
         return proc.poll() is not None
 
 
+def _preexec(launcher_pid: int, cpus: frozenset[int] | None) -> None:
+    """In the child between fork and exec (no Zenoh, no thread): its CPUs
+    (``skyloop.placement``), then :func:`_pdeathsig`."""
+    if cpus is not None:
+        pin_self(cpus)
+    _pdeathsig(launcher_pid)
+
+
 def _pdeathsig(launcher_pid: int) -> None:  # in the child between fork and exec: no Zenoh
     """SIGTERM when the launcher (``launcher_pid``, taken before the fork) dies. The
     parent-death signal is armed only from the ``prctl`` on: a launcher that died since
@@ -168,8 +182,9 @@ class Child:
 class Graph:
     """The running children; reader threads route their output."""
 
-    def __init__(self, env: dict[str, str], verbose: bool = False) -> None:
-        self.env, self.verbose = env, verbose
+    def __init__(self, env: dict[str, str], verbose: bool = False,
+                 placement: Placement | None = None) -> None:
+        self.env, self.verbose, self.placement = env, verbose, placement
         self.children: list[Child] = []
         self.episodes: list[dict] = []
         self.summary: dict | None = None
@@ -181,6 +196,7 @@ class Graph:
         self.cpu_at_go: dict[int, float] = {}  # pid -> CPU seconds when "go" was sent
         self.cpu_at_end: dict[int, float] | None = None  # ... as the sim's summary came
         self.cpu_s: dict[str, float] = {}  # node -> CPU seconds from "go" to the end
+        self.cpus: dict[str, list[int]] = {}  # node -> the CPUs it may use, at "go"
         self.zenoh_configs: Path | None = None  # ``skyloop certs`` output: <node>.json5
         self._lock = threading.Lock()
 
@@ -188,11 +204,12 @@ class Graph:
         env = self.env
         if self.zenoh_configs is not None:  # each node presents its own certificate
             env = dict(env, ZENOH_CONFIG=str(self.zenoh_configs / f"{name}.json5"))
+        cpus = self.placement.cpus(name) if self.placement is not None else None
         proc = subprocess.Popen(
             [sys.executable, "-m", "skyloop", *args], env=env, stdin=stdin,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT, text=True, bufsize=1, start_new_session=True,
-            preexec_fn=functools.partial(_pdeathsig, os.getpid()))
+            preexec_fn=functools.partial(_preexec, os.getpid(), cpus))
         child = Child(name, proc)
         self.children.append(child)
         child.reader = threading.Thread(target=self._read, args=(child,), daemon=True)
@@ -241,6 +258,16 @@ class Graph:
         """CPU seconds of every child (pid -> s) that ``/proc`` still shows."""
         return {c.proc.pid: t for c in list(self.children)
                 if (t := cpu_seconds(c.proc.pid)) is not None}
+
+    def affinity(self) -> dict[str, list[int]]:
+        """The CPUs each live child may run on, as the kernel says (node -> CPUs)."""
+        out = {}
+        for c in list(self.children):
+            try:
+                out[c.name] = sorted(os.sched_getaffinity(c.proc.pid))
+            except (AttributeError, OSError):  # not Linux, or gone
+                pass
+        return out
 
     def cpu_since_go(self) -> None:
         """Each node's CPU seconds since "go" (``cpu_s``) up to the sim's summary line,
@@ -369,7 +396,7 @@ def run_up(args: UpCommand) -> int:
         f"{'tls/localhost' if secure else 'tcp/127.0.0.1'}:{free_port()}"
     ports = {"api": args.api_port, "api_local": args.api_local_port, "gcs": args.gcs_port,
              "gcs_local": args.gcs_local_port}
-    graph = Graph(env, args.verbose)
+    graph = Graph(env, args.verbose, plan(args.pin, lockstep=not args.realtime))
     if secure:
         graph.zenoh_configs = Path(args.zenoh_config_dir).resolve()
         missing = [n for n in ("router", "launcher", *nodes_of(args))
@@ -418,6 +445,7 @@ def run_up(args: UpCommand) -> int:
                 return _died(graph, c)
         assert sim.proc.stdin is not None
         graph.cpu_at_go = graph.read_cpu()  # what start-up and warm-up cost stays out
+        graph.cpus = graph.affinity()
         sim.proc.stdin.write("go\n")
         sim.proc.stdin.flush()
         bus.close()  # readiness is known; a restart forks, never with a session open
@@ -533,7 +561,8 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
     s = dict(graph.summary or {})
     n = s.get("episodes", 0)
     s.update(policy=args.policy or "shipped", router=bool(args.router), log=graph.log_path,
-             total_wall_s=wall_s, restarts=dict(graph.restarts))
+             total_wall_s=wall_s, restarts=dict(graph.restarts), cpus=graph.cpus,
+             pinned=graph.placement is not None)
     outcomes = ("success", "collision", "timeout") + (("aborted",) if s.get("aborted") else ())
     rates = ", ".join(f"{o} {s.get(o, 0)}/{n}" for o in outcomes)
     lat = (f", latency p50 {s['latency_ms_p50']:.2f} ms p99 {s['latency_ms_p99']:.2f} ms"

@@ -391,6 +391,10 @@ class UpCommand(EncodingFlag, SimRules, MavlinkPorts, SecurityFlags, PolicyFlag,
         "Ctrl-C) or save:PATH.rrd"), help_behavior_hint="(default: no viewer)")] = None
     viz_scan_every: Annotated[int, tyro.conf.arg(metavar="N")] = ViewFlags.scan_every
     """with --viz: draw the LiDAR scan every N steps"""
+    pin: Annotated[Literal["auto", "chain", "off"], tyro.conf.arg(help=(
+        "chain: the lockstep chain (sim, perception, policy, bridge, router) shares one "
+        "core, everything else the others (skyloop.placement); auto: chain in lockstep, "
+        "off in real time; off: the scheduler places every process"))] = "auto"
     verbose: Annotated[bool, tyro.conf.arg(aliases=("-v",))] = False
     """echo every node's output"""
 

@@ -97,6 +97,14 @@ def test_summary_matches_env(runs, env_episodes):
         assert all(cpu[n] > 0 for n in ("sim", "perception", "policy", "bridge")), cpu
         assert "record" in cpu and ("router" in cpu) == summary["router"], cpu
         assert "cpu per control step after go (ms): " in stdout
+        # --pin auto in lockstep (skyloop.placement): the chain on one CPU, the recorder
+        # on the others, as the kernel reports each child's affinity at "go"
+        cpus = summary["cpus"]
+        chain = [n for n in ("sim", "perception", "policy", "bridge", "router") if n in cpus]
+        if len(os.sched_getaffinity(0)) >= 2:
+            assert summary["pinned"] and len(chain) == 4 + summary["router"], cpus
+            assert all(cpus[n] == cpus["sim"] for n in chain) and len(cpus["sim"]) == 1, cpus
+            assert not set(cpus["record"]) & set(cpus["sim"]), cpus
         # each node's last line, summed per node: the bounded queues dropped nothing in
         # lockstep, and what they passed on is counted
         counters = summary["counters"]

@@ -1,0 +1,67 @@
+"""Which CPUs the stack's processes may run on (``skyloop up --pin``).
+
+In lockstep one control step is a serial chain of processes: the sim publishes the scan,
+perception reduces it, the policy answers, the bridge hands the setpoint back to the sim
+(each hop through the router with ``--router``), and each waits for the one before.
+Nothing in the chain runs beside anything else of the chain, so the chain gains nothing
+from a second core; what it loses when the scheduler spreads it is a cross-core wake-up
+and a cold cache at every hop, and a core shared with the processes beside the chain
+(recorder, viewer, launcher, a training run). With :func:`plan` the chain shares one
+core (the scan stays in its caches from hop to hop) and everything else gets the
+others. Measured (``benchmarks/RESULTS.md``, 2026-12-06, 2 cores): lockstep 260 -> 305
+control steps/s with the recorder, 288 -> 324 without, 259 -> 300 with ``--router``, and
+every chain node's CPU per step 10-30% lower.
+
+``auto`` pins in lockstep only: in real time each node idles most of a step, and the
+pinned chain's p99 latency fell (8.8-9.0 -> 4.9-6.5 ms) while its p50 rose (3.3 -> 3.7 ms)
+in the same measurement, so the scheduler keeps the choice there (``--pin chain`` takes
+it). Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than two usable
+cores, nothing is pinned.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Literal
+
+__all__ = ["CHAIN", "Placement", "PinMode", "plan", "pin_self"]
+
+#: the processes one lockstep step passes through, in order (the router relays every hop)
+CHAIN = ("sim", "perception", "policy", "bridge", "router")
+PinMode = Literal["auto", "chain", "off"]
+
+
+@dataclass(frozen=True)
+class Placement:
+    """The chain's CPUs and everyone else's (disjoint)."""
+
+    chain: frozenset[int]
+    others: frozenset[int]
+
+    def cpus(self, node: str) -> frozenset[int]:
+        """The CPUs ``node`` may run on."""
+        return self.chain if node in CHAIN else self.others
+
+
+def plan(pin: PinMode, lockstep: bool, allowed: set[int] | None = None) -> Placement | None:
+    """Where the nodes go, or None to leave them to the scheduler: with ``pin`` "chain"
+    (or "auto" in lockstep) and at least two of the ``allowed`` CPUs (default: this
+    process's), the chain gets the highest-numbered one (CPU 0 tends to take more of
+    the machine's interrupts) and everything else the rest."""
+    if pin == "off" or (pin == "auto" and not lockstep):
+        return None
+    if allowed is None:
+        if not hasattr(os, "sched_getaffinity"):
+            return None
+        allowed = os.sched_getaffinity(0)
+    if len(allowed) < 2:
+        return None
+    core = max(allowed)
+    return Placement(frozenset({core}), frozenset(allowed - {core}))
+
+
+def pin_self(cpus: frozenset[int]) -> None:
+    """Restrict the calling process (threads started later inherit it) to ``cpus``: run
+    in a child between fork and exec, before it has any thread of its own."""
+    os.sched_setaffinity(0, cpus)

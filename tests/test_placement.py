@@ -1,0 +1,48 @@
+"""``skyloop.placement``: where ``skyloop up --pin`` puts the processes, and a real child
+pinned by the launcher's pre-exec hook."""
+
+from __future__ import annotations
+
+import functools
+import os
+import subprocess
+import sys
+
+import pytest
+
+from skyloop.placement import CHAIN, Placement, plan
+
+
+def test_chain_gets_the_highest_cpu_and_the_rest_the_others():
+    p = plan("auto", lockstep=True, allowed={0, 1, 2, 3})
+    assert p == Placement(frozenset({3}), frozenset({0, 1, 2}))
+    assert all(p.cpus(n) == {3} for n in CHAIN)
+    assert p.cpus("record") == p.cpus("viz") == {0, 1, 2}
+    assert plan("chain", lockstep=False, allowed={2, 5}) == Placement(frozenset({5}),
+                                                                      frozenset({2}))
+
+
+@pytest.mark.parametrize(("pin", "lockstep", "allowed"), [
+    ("off", True, {0, 1}),      # asked not to
+    ("auto", False, {0, 1}),    # real time: the scheduler keeps the choice
+    ("auto", True, {3}),        # one usable core: nothing to separate
+    ("chain", True, {0}),
+])
+def test_nothing_pinned(pin, lockstep, allowed):
+    assert plan(pin, lockstep, allowed) is None
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs Linux and two usable CPUs")
+def test_launcher_pins_a_child_before_exec():
+    """The launcher's pre-exec hook pins the child program itself, threads included."""
+    from skyloop.launcher import _preexec
+
+    p = plan("chain", lockstep=True)
+    assert p is not None
+    code = ("import os, threading; seen = []; "
+            "t = threading.Thread(target=lambda: seen.append(os.sched_getaffinity(0))); "
+            "t.start(); t.join(); print(sorted(os.sched_getaffinity(0)), sorted(seen[0]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, preexec_fn=functools.partial(_preexec, os.getpid(), p.chain))
+    assert out.stdout.split() == [str(sorted(p.chain))] * 2, out.stdout
