@@ -48,6 +48,8 @@ class Heightfield:
     def height(self, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray | float:
         """Surface height at (x, y) on the triangle mesh; clamped to the grid's edge."""
         scalar = np.isscalar(x) and np.isscalar(y)
+        if scalar:  # the same arithmetic on Python floats: ~10x faster for one point
+            return self._height_at(float(x), float(y))
         fx = np.clip((np.asarray(x, dtype=float) - self.x0) / self.res, 0.0, self.nx)
         fy = np.clip((np.asarray(y, dtype=float) - self.y0) / self.res, 0.0, self.ny)
         ix = np.minimum(np.floor(fx).astype(np.int64), self.nx - 1)
@@ -60,6 +62,20 @@ class Heightfield:
         b = h00 + (h11 - h01) * u + (h01 - h00) * v  # triangle B (u < v)
         out = np.where(u >= v, a, b)
         return float(out) if scalar else out
+
+    def _height_at(self, x: float, y: float) -> float:
+        """:meth:`height` of one point, operation for operation (bit-identical)."""
+        nx, ny = self.nx, self.ny
+        fx = min(max((x - self.x0) / self.res, 0.0), float(nx))
+        fy = min(max((y - self.y0) / self.res, 0.0), float(ny))
+        ix, iy = min(math.floor(fx), nx - 1), min(math.floor(fy), ny - 1)
+        u, v = fx - ix, fy - iy
+        h = self.heights
+        h00, h10 = h.item(iy, ix), h.item(iy, ix + 1)
+        h01, h11 = h.item(iy + 1, ix), h.item(iy + 1, ix + 1)
+        if u >= v:
+            return h00 + (h10 - h00) * u + (h11 - h10) * v  # triangle A
+        return h00 + (h11 - h01) * u + (h01 - h00) * v  # triangle B
 
     def mesh(self) -> tuple[np.ndarray, np.ndarray]:
         """Vertices (V,3) float32 and triangles (T,3) int32 of the grid's triangle mesh."""

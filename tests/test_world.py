@@ -46,6 +46,22 @@ def test_bounds_and_terrain_height() -> None:
     assert h.max() > 5.0  # hills rise above the flight level
 
 
+@pytest.mark.parametrize("name", ["valley", "city"])
+def test_scalar_terrain_height_is_the_array_one_bit_for_bit(name: str) -> None:
+    """One point takes a pure-Python path (the sim asks every step): it must give the
+    very same doubles as the vectorised path, inside, on vertices and past the edges."""
+    t = world(name).terrain
+    rng = np.random.default_rng(7)
+    xmin, xmax, ymin, ymax = t.extent
+    xs = np.concatenate([rng.uniform(xmin - 5, xmax + 5, 2000), t.x0 + np.arange(5) * t.res,
+                         [xmin, xmax, xmax + 1e-9]])
+    ys = np.concatenate([rng.uniform(ymin - 5, ymax + 5, 2000), t.y0 + np.arange(5) * t.res,
+                         [ymax, ymin, ymin - 3.0]])
+    arr = t.height(xs, ys)
+    one = np.array([t.height(float(x), float(y)) for x, y in zip(xs, ys, strict=True)])
+    assert np.array_equal(arr, one)
+
+
 def test_terrain_collision() -> None:
     w = world("valley")
     x, y = 0.3, -0.7
