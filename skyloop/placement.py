@@ -16,7 +16,10 @@ every chain node's CPU per step 10-30% lower.
 pinned chain's p99 latency fell (8.8-9.0 -> 4.9-6.5 ms) while its p50 rose (3.3 -> 3.7 ms)
 in the same measurement, so the scheduler keeps the choice there (``--pin chain`` takes
 it). Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than two usable
-cores, nothing is pinned.
+cores, nothing is pinned. The launcher places within the CPUs it may use itself, so
+several stacks on one machine each get their own with ``taskset``
+(``taskset -c 0,1 skyloop up ...`` and ``taskset -c 2,3 skyloop up ...``); without it
+every stack's chain would take the same highest-numbered core.
 """
 
 from __future__ import annotations
