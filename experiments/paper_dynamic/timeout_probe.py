@@ -8,6 +8,9 @@ per step over those 50 steps. With discount gamma, waiting forever at reward r a
 is worth r / (1 - gamma) to the critic, against TR's one-off +50 for arriving.
 
     python experiments/paper_dynamic/timeout_probe.py TRIAL_DIR [TRIAL_DIR ...] --episodes 100
+
+With ``--family NAME --worlds N`` episode i flies held-out world i % N of that family
+(as ``noise_probe.py``; issue 14's mixture policy on open worlds).
 """
 
 from __future__ import annotations
@@ -20,17 +23,21 @@ import numpy as np
 
 from policy.algorithms.rewards import RewardConfig, step_reward
 from policy.training.evaluate import EVAL_SEED, env_for, make_controller
+from sitl.families import eval_worlds
 
 TAIL = 50  # steps at the end of a timeout that are summarised
 
 
-def fly(trial: Path, episodes: int) -> dict:
+def fly(trial: Path, episodes: int, family: str | None = None, worlds: int = 0) -> dict:
     config = json.loads((trial / "config.json").read_text())
     controller = make_controller(str(trial / "actor.pt"))
-    env = env_for(controller, config["scenario"])
+    names = eval_worlds(family, worlds) if family else []
+    env = env_for(controller, names[0] if names else config["scenario"])
     reward_config = RewardConfig()
     outcomes, tails = {"success": 0, "collision": 0, "timeout": 0}, []
     for i in range(episodes):
+        if names:
+            env.sim.use_world(names[i % len(names)])
         state, _ = env.reset(seed=EVAL_SEED + i)
         dists, alts, rewards, speeds = [], [], [], []
         while True:
@@ -50,7 +57,7 @@ def fly(trial: Path, episodes: int) -> dict:
                                   "reward_per_step": float(np.mean(rewards[-TAIL:]))})
                 break
     env.close()
-    out: dict = {"trial": trial.name, "episodes": episodes,
+    out: dict = {"trial": trial.name, "family": family, "episodes": episodes,
                  **{k: v / episodes for k, v in outcomes.items()}}
     if tails:
         for key in tails[0]:
@@ -65,9 +72,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("trials", nargs="+", type=Path)
     ap.add_argument("--episodes", type=int, default=100)
+    ap.add_argument("--family", help="fly held-out worlds of this family instead")
+    ap.add_argument("--worlds", type=int, default=20, help="with --family: how many")
     args = ap.parse_args()
     for trial in args.trials:
-        print(json.dumps(fly(trial, args.episodes)), flush=True)
+        print(json.dumps(fly(trial, args.episodes, args.family, args.worlds)), flush=True)
 
 
 if __name__ == "__main__":
