@@ -41,8 +41,8 @@ would be a new run; a new recorder a second log).
 
 Where the processes run: ``--pin`` (``skyloop.placement``; default ``auto``): in lockstep
 the chain a step passes through (sim, perception, policy, bridge, router) shares one core
-and the others (recorder, viewer) get the rest, set in each child before it runs
-anything; the summary's ``cpus`` says what the kernel holds for each node at "go".
+(set in each child before it runs anything), the recorder and viewer run anywhere; the
+summary's ``cpus`` says what the kernel holds for each node at "go".
 
 Where the time goes: at "go" and again at the end of the episodes (as the sim's summary
 line comes, before any node shuts down; failing that, once the sim has exited, before it

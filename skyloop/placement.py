@@ -5,18 +5,20 @@ perception reduces it, the policy answers, the bridge hands the setpoint back to
 (each hop through the router with ``--router``), and each waits for the one before.
 Nothing in the chain runs beside anything else of the chain, so the chain gains nothing
 from a second core; what it loses when the scheduler spreads it is a cross-core wake-up
-and a cold cache at every hop, and a core shared with the processes beside the chain
-(recorder, viewer, launcher, a training run). With :func:`plan` the chain shares one
-core (the scan stays in its caches from hop to hop) and everything else gets the
-others. Measured (``benchmarks/RESULTS.md``, 2026-12-06, 2 cores): lockstep 260 -> 305
-control steps/s with the recorder, 288 -> 324 without, 259 -> 300 with ``--router``, and
-every chain node's CPU per step 10-30% lower.
+and a cold cache at every hop. With :func:`plan` the chain shares one core (the scan
+stays in its caches from hop to hop); everything else (recorder, viewer, the launcher,
+whatever else runs) stays free to run anywhere, so it takes the other cores while the
+chain runs and the chain's core while the chain waits. Measured
+(``benchmarks/RESULTS.md``, 2026-12-06, 2 cores): lockstep 260 -> 305 control steps/s
+with the recorder, 288 -> 324 without, 259 -> 300 with ``--router``, every chain node's
+CPU per step 10-30% lower; confining the recorder to the other cores as well gained
+another 0-2% and starved it behind other work on a loaded machine, so it is not done.
 
 ``auto`` pins in lockstep only: in real time each node idles most of a step, and the
 pinned chain's p99 latency fell (8.8-9.0 -> 4.9-6.5 ms) while its p50 rose (3.3 -> 3.7 ms)
 in the same measurement, so the scheduler keeps the choice there (``--pin chain`` takes
 it). Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than two usable
-cores, nothing is pinned. The launcher places within the CPUs it may use itself, so
+cores, nothing is pinned. The chain goes to a core the launcher may use itself, so
 several stacks on one machine each get their own with ``taskset``
 (``taskset -c 0,1 skyloop up ...`` and ``taskset -c 2,3 skyloop up ...``); without it
 every stack's chain would take the same highest-numbered core.
@@ -37,21 +39,20 @@ PinMode = Literal["auto", "chain", "off"]
 
 @dataclass(frozen=True)
 class Placement:
-    """The chain's CPUs and everyone else's (disjoint)."""
+    """The chain's CPUs; the other nodes are not pinned."""
 
     chain: frozenset[int]
-    others: frozenset[int]
 
-    def cpus(self, node: str) -> frozenset[int]:
-        """The CPUs ``node`` may run on."""
-        return self.chain if node in CHAIN else self.others
+    def cpus(self, node: str) -> frozenset[int] | None:
+        """The CPUs ``node`` is pinned to (None: not pinned)."""
+        return self.chain if node in CHAIN else None
 
 
 def plan(pin: PinMode, lockstep: bool, allowed: set[int] | None = None) -> Placement | None:
-    """Where the nodes go, or None to leave them to the scheduler: with ``pin`` "chain"
+    """Where the chain goes, or None to leave it to the scheduler: with ``pin`` "chain"
     (or "auto" in lockstep) and at least two of the ``allowed`` CPUs (default: this
-    process's), the chain gets the highest-numbered one (CPU 0 tends to take more of
-    the machine's interrupts) and everything else the rest."""
+    process's), the highest-numbered one (CPU 0 tends to take more of the machine's
+    interrupts)."""
     if pin == "off" or (pin == "auto" and not lockstep):
         return None
     if allowed is None:
@@ -60,8 +61,7 @@ def plan(pin: PinMode, lockstep: bool, allowed: set[int] | None = None) -> Place
         allowed = os.sched_getaffinity(0)
     if len(allowed) < 2:
         return None
-    core = max(allowed)
-    return Placement(frozenset({core}), frozenset(allowed - {core}))
+    return Placement(frozenset({max(allowed)}))
 
 
 def pin_self(cpus: frozenset[int]) -> None:

@@ -13,13 +13,12 @@ import pytest
 from skyloop.placement import CHAIN, Placement, plan
 
 
-def test_chain_gets_the_highest_cpu_and_the_rest_the_others():
+def test_chain_gets_the_highest_cpu_and_the_rest_stay_free():
     p = plan("auto", lockstep=True, allowed={0, 1, 2, 3})
-    assert p == Placement(frozenset({3}), frozenset({0, 1, 2}))
+    assert p == Placement(frozenset({3}))
     assert all(p.cpus(n) == {3} for n in CHAIN)
-    assert p.cpus("record") == p.cpus("viz") == {0, 1, 2}
-    assert plan("chain", lockstep=False, allowed={2, 5}) == Placement(frozenset({5}),
-                                                                      frozenset({2}))
+    assert p.cpus("record") is None and p.cpus("viz") is None
+    assert plan("chain", lockstep=False, allowed={2, 5}) == Placement(frozenset({5}))
 
 
 @pytest.mark.parametrize(("pin", "lockstep", "allowed"), [
