@@ -544,7 +544,8 @@ def test_chaos_random_kills_each_end_in_the_failsafe_and_a_restart(tmp_path):
     assert s["restarts"] == {"policy": 6, "perception": 2, "bridge": 2}, s
     [mcap] = list(out.glob("*/*.mcap"))
     episodes, report = read_episodes(mcap)
-    assert report.clean and len(episodes) == 30 and all(e.complete for e in episodes)
+    assert report.clean and len(episodes) == 30 and all(e.complete for e in episodes), (
+        report.summary(), [e.index for e in episodes], s["counters"].get("record"), s["cpus"])
     assert sum(e.outcome == "aborted" for e in episodes) == s["aborted"]
 
 
