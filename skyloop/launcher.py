@@ -578,6 +578,11 @@ def _summary(graph: Graph, args: UpCommand, wall_s: float) -> dict[str, Any]:
         per = ", ".join(f"{k} {v:.2f}" for k, v in s["cpu_ms_per_step"].items())
         print(f"cpu per control step after go (ms): {per}; total "
               f"{sum(s['cpu_ms_per_step'].values()):.2f}", flush=True)
+    if graph.placement is not None:
+        chain = [n for n in graph.cpus if graph.placement.cpus(n) is not None]
+        cores = sorted(graph.placement.chain)
+        print(f"pinned (--pin): the chain ({', '.join(chain)}) shares CPU "
+              f"{', '.join(map(str, cores))}", flush=True)
     if graph.counters:
         s["counters"] = graph.counter_totals()
         # each node's counters (SKYLOOP-COUNTERS) say what its bounded queues dropped

@@ -105,6 +105,7 @@ def test_summary_matches_env(runs, env_episodes):
             assert summary["pinned"] and len(chain) == 4 + summary["router"], cpus
             assert all(cpus[n] == [mine[-1]] for n in chain), cpus
             assert cpus["record"] == mine, cpus
+            assert f") shares CPU {mine[-1]}\n" in stdout, stdout
         # each node's last line, summed per node: the bounded queues dropped nothing in
         # lockstep, and what they passed on is counted
         counters = summary["counters"]
