@@ -7,9 +7,10 @@ Keys:
   process; start-up excluded), as ``skyloop up`` runs it (``--pin auto``: the chain on
   one core, ``skyloop.placement``). Goal: >= 300 (30x real time).
   ``stack_lockstep_recorded_steps_per_s``: the same with the recorder (``--log-dir``, as
-  ``make demo``). Peers in the same run: both with ``--pin off`` (the scheduler places
-  every process: the code path before pinning). Full mode: 3 repeats, interleaved,
-  medians (each repeat's values under ``stack_lockstep_runs``).
+  ``make demo``; ``auto`` leaves that unpinned). Peers in the same run:
+  ``..._unpinned_...`` (``--pin off``, the code path before pinning) and
+  ``..._recorded_pinned_...`` (``--pin chain`` with the recorder). Full mode: 3 repeats,
+  interleaved, medians (each repeat's values under ``stack_lockstep_runs``).
 - ``stack_lockstep_latency_ms_p50``/``_p99``: per step, scan publish -> the step's
   command back at the simulator (the lockstep round trip through every node).
 - ``stack_realtime_latency_ms_p50``/``_p99``: the same in real time (10 Hz, wall
@@ -96,14 +97,14 @@ def lockstep_rows(episodes: int, repeats: int) -> dict[str, list[float]]:
     """Steps/s of lockstep runs, pinned and not, with and without the recorder,
     interleaved ``repeats`` times."""
     rows: dict[str, list[float]] = {}
+    settings = {"": (False, "auto"), "unpinned_": (False, "off"),
+                "recorded_": (True, "auto"), "recorded_pinned_": (True, "chain")}
     for _ in range(repeats):
-        for rec in (False, True):
-            for pin in ("auto", "off"):
-                with tempfile.TemporaryDirectory() as tmp:
-                    log = ["--log-dir", tmp] if rec else []
-                    s = run_up("--lockstep", "--episodes", str(episodes), "--pin", pin, *log)
-                key = ("recorded_" if rec else "") + ("" if pin == "auto" else "unpinned_")
-                rows.setdefault(key, []).append(round(s["steps_per_s"], 1))
+        for key, (rec, pin) in settings.items():
+            with tempfile.TemporaryDirectory() as tmp:
+                log = ["--log-dir", tmp] if rec else []
+                s = run_up("--lockstep", "--episodes", str(episodes), "--pin", pin, *log)
+            rows.setdefault(key, []).append(round(s["steps_per_s"], 1))
     return rows
 
 
@@ -128,7 +129,7 @@ def run(quick: bool) -> dict:
         "stack_lockstep_runs": {f"stack_lockstep_{k}steps_per_s": v for k, v in rows.items()},
         "peers": {"inprocess_env_shipped_policy_steps_per_s": env_steps_per_s(1 if quick else 10),
                   "stack_lockstep_unpinned_steps_per_s": med["unpinned_"],
-                  "stack_lockstep_recorded_unpinned_steps_per_s": med["recorded_unpinned_"]},
+                  "stack_lockstep_recorded_pinned_steps_per_s": med["recorded_pinned_"]},
     }
 
 

@@ -40,9 +40,10 @@ summary counts the restarts. The sim and the recorder are never restarted (a new
 would be a new run; a new recorder a second log).
 
 Where the processes run: ``--pin`` (``skyloop.placement``; default ``auto``): in lockstep
-the chain a step passes through (sim, perception, policy, bridge, router) shares one core
-(set in each child before it runs anything), the recorder and viewer run anywhere; the
-summary's ``cpus`` says what the kernel holds for each node at "go".
+without a recorder or viewer the chain a step passes through (sim, perception, policy,
+bridge, router) shares one core (set in each child before it runs anything); ``chain``
+pins it whatever runs beside it. The summary's ``cpus`` says what the kernel holds for
+each node at "go".
 
 Where the time goes: at "go" and again at the end of the episodes (as the sim's summary
 line comes, before any node shuts down; failing that, once the sim has exited, before it
@@ -396,7 +397,8 @@ def run_up(args: UpCommand) -> int:
         f"{'tls/localhost' if secure else 'tcp/127.0.0.1'}:{free_port()}"
     ports = {"api": args.api_port, "api_local": args.api_local_port, "gcs": args.gcs_port,
              "gcs_local": args.gcs_local_port}
-    graph = Graph(env, args.verbose, plan(args.pin, lockstep=not args.realtime))
+    graph = Graph(env, args.verbose, plan(args.pin, lockstep=not args.realtime,
+                                            beside=bool(args.log_dir or args.viz)))
     if secure:
         graph.zenoh_configs = Path(args.zenoh_config_dir).resolve()
         missing = [n for n in ("router", "launcher", *nodes_of(args))

@@ -14,12 +14,19 @@ with the recorder, 288 -> 324 without, 259 -> 300 with ``--router``, every chain
 CPU per step 10-30% lower; confining the recorder to the other cores as well gained
 another 0-2% and starved it behind other work on a loaded machine, so it is not done.
 
-``auto`` pins in lockstep only: in real time each node idles most of a step, and the
-pinned chain's p99 latency fell (8.8-9.0 -> 4.9-6.5 ms) while its p50 rose (3.3 -> 3.7 ms)
-in the same measurement, so the scheduler keeps the choice there (``--pin chain`` takes
-it). Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than two usable
-cores, nothing is pinned. The chain goes to a core the launcher may use itself, so
-several stacks on one machine each get their own with ``taskset``
+``auto`` pins in lockstep without a recorder or viewer beside the chain. In real time
+each node idles most of a step, and the pinned chain's p99 latency fell (8.8-9.0 -> 4.9-6.5
+ms) while its p50 rose (3.3 -> 3.7 ms) in the same measurement, so the scheduler keeps the
+choice there. With a recorder, a pinned lockstep chain keeps its core busy all the time,
+so on a 2-core machine with other work the recorder gets what is left of one core: in a
+full test run beside a second test worker it fell behind and dropped 469 messages
+(counted), one episode's START and END among them; unpinned it keeps up. So ``auto``
+leaves a recorded or viewed run to the scheduler; ``--pin chain`` pins it anyway (7-15%
+faster on a machine with nothing else at normal priority).
+
+Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than two usable cores,
+nothing is pinned. The chain goes to a core the launcher may use itself, so several
+stacks on one machine each get their own with ``taskset``
 (``taskset -c 0,1 skyloop up ...`` and ``taskset -c 2,3 skyloop up ...``); without it
 every stack's chain would take the same highest-numbered core.
 """
@@ -48,12 +55,13 @@ class Placement:
         return self.chain if node in CHAIN else None
 
 
-def plan(pin: PinMode, lockstep: bool, allowed: set[int] | None = None) -> Placement | None:
+def plan(pin: PinMode, lockstep: bool, beside: bool = False,
+         allowed: set[int] | None = None) -> Placement | None:
     """Where the chain goes, or None to leave it to the scheduler: with ``pin`` "chain"
-    (or "auto" in lockstep) and at least two of the ``allowed`` CPUs (default: this
-    process's), the highest-numbered one (CPU 0 tends to take more of the machine's
-    interrupts)."""
-    if pin == "off" or (pin == "auto" and not lockstep):
+    (or "auto" in lockstep with nothing ``beside`` the chain: no recorder, no viewer) and
+    at least two of the ``allowed`` CPUs (default: this process's), the highest-numbered
+    one (CPU 0 tends to take more of the machine's interrupts)."""
+    if pin == "off" or (pin == "auto" and (not lockstep or beside)):
         return None
     if allowed is None:
         if not hasattr(os, "sched_getaffinity"):

@@ -394,7 +394,8 @@ class UpCommand(EncodingFlag, SimRules, MavlinkPorts, SecurityFlags, PolicyFlag,
     pin: Annotated[Literal["auto", "chain", "off"], tyro.conf.arg(help=(
         "chain: the lockstep chain (sim, perception, policy, bridge, router) shares one "
         "core, the recorder and viewer run anywhere (skyloop.placement); auto: chain in "
-        "lockstep, off in real time; off: the scheduler places every process"))] = "auto"
+        "lockstep without --log-dir or --viz, else off; off: the scheduler places every "
+        "process"))] = "auto"
     verbose: Annotated[bool, tyro.conf.arg(aliases=("-v",))] = False
     """echo every node's output"""
 

@@ -4,9 +4,11 @@ pinned by the launcher's pre-exec hook."""
 from __future__ import annotations
 
 import functools
+import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -15,20 +17,23 @@ from skyloop.placement import CHAIN, Placement, plan
 
 def test_chain_gets_the_highest_cpu_and_the_rest_stay_free():
     p = plan("auto", lockstep=True, allowed={0, 1, 2, 3})
+    assert plan("chain", lockstep=True, beside=True, allowed={0, 1}) == Placement(
+        frozenset({1}))
     assert p == Placement(frozenset({3}))
     assert all(p.cpus(n) == {3} for n in CHAIN)
     assert p.cpus("record") is None and p.cpus("viz") is None
     assert plan("chain", lockstep=False, allowed={2, 5}) == Placement(frozenset({5}))
 
 
-@pytest.mark.parametrize(("pin", "lockstep", "allowed"), [
-    ("off", True, {0, 1}),      # asked not to
-    ("auto", False, {0, 1}),    # real time: the scheduler keeps the choice
-    ("auto", True, {3}),        # one usable core: nothing to separate
-    ("chain", True, {0}),
+@pytest.mark.parametrize(("pin", "lockstep", "beside", "allowed"), [
+    ("off", True, False, {0, 1}),     # asked not to
+    ("auto", False, False, {0, 1}),   # real time: the scheduler keeps the choice
+    ("auto", True, True, {0, 1}),     # a recorder or viewer beside: it may need the core
+    ("auto", True, False, {3}),       # one usable core: nothing to separate
+    ("chain", True, False, {0}),
 ])
-def test_nothing_pinned(pin, lockstep, allowed):
-    assert plan(pin, lockstep, allowed) is None
+def test_nothing_pinned(pin, lockstep, beside, allowed):
+    assert plan(pin, lockstep, beside, allowed) is None
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
@@ -45,3 +50,21 @@ def test_launcher_pins_a_child_before_exec():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, preexec_fn=functools.partial(_preexec, os.getpid(), p.chain))
     assert out.stdout.split() == [str(sorted(p.chain))] * 2, out.stdout
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs Linux and two usable CPUs")
+def test_up_pins_a_lockstep_chain_without_a_recorder(tmp_path):
+    """A real ``skyloop up`` in lockstep, nothing beside the chain: ``--pin auto`` puts
+    every node of the chain on the highest CPU the launcher may use."""
+    from loopback import up_args
+
+    out = tmp_path / "summary.json"
+    root = Path(__file__).resolve().parent.parent
+    r = subprocess.run(up_args("--episodes", "1", "--policy", "scripted", "--json", str(out)),
+                       cwd=root, capture_output=True, text=True, timeout=180)
+    assert r.returncode == 0, r.stdout + r.stderr
+    s = json.loads(out.read_text())
+    top = max(os.sched_getaffinity(0))
+    assert s["pinned"] and s["cpus"] == {n: [top] for n in ("sim", "perception", "policy",
+                                                            "bridge")}, s["cpus"]

@@ -50,7 +50,8 @@ def run_up(tmp: Path, name: str, *extra: str) -> tuple[dict, Path, str]:
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("stack")
-    return {"peer": run_up(tmp, "peer"), "router": run_up(tmp, "router", "--router")}
+    return {"peer": run_up(tmp, "peer"),
+            "router": run_up(tmp, "router", "--router", "--pin", "chain")}
 
 
 @pytest.fixture(scope="module")
@@ -97,14 +98,16 @@ def test_summary_matches_env(runs, env_episodes):
         assert all(cpu[n] > 0 for n in ("sim", "perception", "policy", "bridge")), cpu
         assert "record" in cpu and ("router" in cpu) == summary["router"], cpu
         assert "cpu per control step after go (ms): " in stdout
-        # --pin auto in lockstep (skyloop.placement): the chain on one CPU, the recorder
-        # free, as the kernel reports each child's affinity at "go"
+        # skyloop.placement, as the kernel reports each child's affinity at "go": with the
+        # recorder, --pin auto leaves every node free (peer run); --pin chain (router
+        # run) puts the chain on one CPU and leaves the recorder free
         cpus, mine = summary["cpus"], sorted(os.sched_getaffinity(0))
         chain = [n for n in ("sim", "perception", "policy", "bridge", "router") if n in cpus]
-        if len(mine) >= 2:
-            assert summary["pinned"] and len(chain) == 4 + summary["router"], cpus
-            assert all(cpus[n] == [mine[-1]] for n in chain), cpus
-            assert cpus["record"] == mine, cpus
+        assert cpus["record"] == mine and len(chain) == 4 + summary["router"], cpus
+        if not summary["router"]:
+            assert not summary["pinned"] and all(cpus[n] == mine for n in chain), cpus
+        elif len(mine) >= 2:
+            assert summary["pinned"] and all(cpus[n] == [mine[-1]] for n in chain), cpus
             assert f") shares CPU {mine[-1]}\n" in stdout, stdout
         # each node's last line, summed per node: the bounded queues dropped nothing in
         # lockstep, and what they passed on is counted
