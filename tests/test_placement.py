@@ -54,17 +54,25 @@ def test_launcher_pins_a_child_before_exec():
 
 @pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
                     reason="needs Linux and two usable CPUs")
-def test_up_pins_a_lockstep_chain_without_a_recorder(tmp_path):
-    """A real ``skyloop up`` in lockstep, nothing beside the chain: ``--pin auto`` puts
-    every node of the chain on the highest CPU the launcher may use."""
+@pytest.mark.parametrize("extra", [(), ("--router", "--log-dir", "LOG", "--pin", "chain")],
+                         ids=["auto", "chain-router-recorder"])
+def test_up_pins_the_lockstep_chain(tmp_path, extra):
+    """A real ``skyloop up`` in lockstep: ``--pin auto`` with nothing beside the chain, and
+    ``--pin chain`` beside a recorder with the router in the chain: every node of the
+    chain on the highest CPU the launcher may use (as the kernel says at "go"), the
+    recorder free, the summary says so."""
     from loopback import up_args
 
     out = tmp_path / "summary.json"
     root = Path(__file__).resolve().parent.parent
-    r = subprocess.run(up_args("--episodes", "1", "--policy", "scripted", "--json", str(out)),
-                       cwd=root, capture_output=True, text=True, timeout=180)
+    extra = tuple(str(tmp_path / "log") if a == "LOG" else a for a in extra)
+    r = subprocess.run(up_args("--episodes", "1", "--policy", "scripted", "--json", str(out),
+                               *extra), cwd=root, capture_output=True, text=True, timeout=180)
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads(out.read_text())
-    top = max(os.sched_getaffinity(0))
-    assert s["pinned"] and s["cpus"] == {n: [top] for n in ("sim", "perception", "policy",
-                                                            "bridge")}, s["cpus"]
+    mine = sorted(os.sched_getaffinity(0))
+    chain = ("sim", "perception", "policy", "bridge") + (("router",) if extra else ())
+    assert s["pinned"] and {n: s["cpus"][n] for n in chain} == {n: [mine[-1]] for n in chain}
+    assert set(s["cpus"]) == set(chain) | ({"record"} if extra else set()), s["cpus"]
+    assert s["cpus"].get("record", mine) == mine, s["cpus"]
+    assert f") shares CPU {mine[-1]}\n" in r.stdout, r.stdout

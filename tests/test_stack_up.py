@@ -50,8 +50,7 @@ def run_up(tmp: Path, name: str, *extra: str) -> tuple[dict, Path, str]:
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("stack")
-    return {"peer": run_up(tmp, "peer"),
-            "router": run_up(tmp, "router", "--router", "--pin", "chain")}
+    return {"peer": run_up(tmp, "peer"), "router": run_up(tmp, "router", "--router")}
 
 
 @pytest.fixture(scope="module")
@@ -99,16 +98,11 @@ def test_summary_matches_env(runs, env_episodes):
         assert "record" in cpu and ("router" in cpu) == summary["router"], cpu
         assert "cpu per control step after go (ms): " in stdout
         # skyloop.placement, as the kernel reports each child's affinity at "go": with the
-        # recorder, --pin auto leaves every node free (peer run); --pin chain (router
-        # run) puts the chain on one CPU and leaves the recorder free
+        # recorder beside the chain, --pin auto leaves every node free
+        # (tests/test_placement.py flies pinned chains)
         cpus, mine = summary["cpus"], sorted(os.sched_getaffinity(0))
-        chain = [n for n in ("sim", "perception", "policy", "bridge", "router") if n in cpus]
-        assert cpus["record"] == mine and len(chain) == 4 + summary["router"], cpus
-        if not summary["router"]:
-            assert not summary["pinned"] and all(cpus[n] == mine for n in chain), cpus
-        elif len(mine) >= 2:
-            assert summary["pinned"] and all(cpus[n] == [mine[-1]] for n in chain), cpus
-            assert f") shares CPU {mine[-1]}\n" in stdout, stdout
+        assert not summary["pinned"] and "pinned (--pin)" not in stdout, stdout
+        assert set(cpus) == set(cpu) and all(v == mine for v in cpus.values()), cpus
         # each node's last line, summed per node: the bounded queues dropped nothing in
         # lockstep, and what they passed on is counted
         counters = summary["counters"]
