@@ -93,27 +93,27 @@ def env_steps_per_s(episodes: int) -> float:
     return steps / (time.perf_counter() - t0)
 
 
-def lockstep_rows(episodes: int, repeats: int) -> dict[str, list[float]]:
-    """Steps/s of lockstep runs, pinned and not, with and without the recorder,
+def lockstep_runs(episodes: int, repeats: int) -> dict[str, list[dict]]:
+    """Summaries of lockstep runs, pinned and not, with and without the recorder,
     interleaved ``repeats`` times."""
-    rows: dict[str, list[float]] = {}
+    runs: dict[str, list[dict]] = {}
     settings = {"": (False, "auto"), "unpinned_": (False, "off"),
                 "recorded_": (True, "auto"), "recorded_pinned_": (True, "chain")}
     for _ in range(repeats):
         for key, (rec, pin) in settings.items():
             with tempfile.TemporaryDirectory() as tmp:
                 log = ["--log-dir", tmp] if rec else []
-                s = run_up("--lockstep", "--episodes", str(episodes), "--pin", pin, *log)
-            rows.setdefault(key, []).append(round(s["steps_per_s"], 1))
-    return rows
+                runs.setdefault(key, []).append(
+                    run_up("--lockstep", "--episodes", str(episodes), "--pin", pin, *log))
+    return runs
 
 
 def run(quick: bool) -> dict:
-    lock = run_up("--lockstep", "--episodes", "1" if quick else "10")
-    rows = lockstep_rows(1 if quick else 10, 1 if quick else 3)
-    rt = run_up("--realtime", "--episodes", "1", "--max-steps", "20" if quick else "300")
-    if not quick:
-        rt = run_up("--realtime", "--episodes", "3")
+    runs = lockstep_runs(1 if quick else 10, 1 if quick else 3)
+    rows = {k: [round(r["steps_per_s"], 1) for r in v] for k, v in runs.items()}
+    lock = runs[""][0]  # latency and CPU: the first default run
+    rt = run_up("--realtime", "--episodes", "1", "--max-steps", "20") if quick else \
+        run_up("--realtime", "--episodes", "3")
     cpu = lock.get("cpu_ms_per_step")  # absent where there is no /proc
     med = {k: statistics.median(v) for k, v in rows.items()}
     return {

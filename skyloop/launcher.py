@@ -72,7 +72,7 @@ from typing import Any
 
 from bus.node import Bus
 from bus.session import SessionConfig
-from skyloop.placement import Placement, pin_self, plan
+from skyloop.placement import Placement, plan
 from skyloop.signals import Stopped, block_until_started, stop_on_sigterm
 from skyloop.stack_settings import UpCommand
 
@@ -139,10 +139,10 @@ def exited(proc: subprocess.Popen) -> bool:
 
 
 def _preexec(launcher_pid: int, cpus: frozenset[int] | None) -> None:
-    """In the child between fork and exec (no Zenoh, no thread): its CPUs
-    (``skyloop.placement``), then :func:`_pdeathsig`."""
+    """In the child between fork and exec (no Zenoh, no thread yet: the threads it starts
+    inherit them): its CPUs (``skyloop.placement``), then :func:`_pdeathsig`."""
     if cpus is not None:
-        pin_self(cpus)
+        os.sched_setaffinity(0, cpus)
     _pdeathsig(launcher_pid)
 
 

@@ -8,11 +8,12 @@ from a second core; what it loses when the scheduler spreads it is a cross-core 
 and a cold cache at every hop. With :func:`plan` the chain shares one core (the scan
 stays in its caches from hop to hop); everything else (recorder, viewer, the launcher,
 whatever else runs) stays free to run anywhere, so it takes the other cores while the
-chain runs and the chain's core while the chain waits. Measured
-(``benchmarks/RESULTS.md``, 2026-12-06, 2 cores): lockstep 260 -> 305 control steps/s
-with the recorder, 288 -> 324 without, 259 -> 300 with ``--router``, every chain node's
-CPU per step 10-30% lower; confining the recorder to the other cores as well gained
-another 0-2% and starved it behind other work on a loaded machine, so it is not done.
+chain runs and the chain's core while the chain waits. Measured (``skyloop bench --only
+stack``, ``benchmarks/RESULTS.md`` 2026-12-06, 2 cores, against ``--pin off`` in the same
+run): lockstep 281 vs 276 and 309 vs 304 control steps/s in two hours, with the recorder
+and ``--pin chain`` 259 vs 243 and 290 vs 269; every chain node's CPU per step 10-30%
+lower. Confining the recorder to the other cores as well gained another 0-2% and starved
+it behind other work on a loaded machine, so it is not done.
 
 ``auto`` pins in lockstep without a recorder or viewer beside the chain. In real time
 each node idles most of a step, and the pinned chain's p99 latency fell (8.8-9.0 -> 4.9-6.5
@@ -22,7 +23,7 @@ so on a 2-core machine with other work the recorder gets what is left of one cor
 full test run beside a second test worker it fell behind and dropped 469 messages
 (counted), one episode's START and END among them; unpinned it keeps up. So ``auto``
 leaves a recorded or viewed run to the scheduler; ``--pin chain`` pins it anyway (7-15%
-faster on a machine with nothing else at normal priority).
+faster with nothing else at normal priority).
 
 Linux only (``os.sched_setaffinity``); elsewhere, or with fewer than two usable cores,
 nothing is pinned. The chain goes to a core the launcher may use itself, so several
@@ -37,7 +38,7 @@ import os
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["CHAIN", "Placement", "PinMode", "plan", "pin_self"]
+__all__ = ["CHAIN", "Placement", "PinMode", "plan"]
 
 #: the processes one lockstep step passes through, in order (the router relays every hop)
 CHAIN = ("sim", "perception", "policy", "bridge", "router")
@@ -71,8 +72,3 @@ def plan(pin: PinMode, lockstep: bool, beside: bool = False,
         return None
     return Placement(frozenset({max(allowed)}))
 
-
-def pin_self(cpus: frozenset[int]) -> None:
-    """Restrict the calling process (threads started later inherit it) to ``cpus``: run
-    in a child between fork and exec, before it has any thread of its own."""
-    os.sched_setaffinity(0, cpus)

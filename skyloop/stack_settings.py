@@ -37,6 +37,7 @@ from mavlink_bridge.offboard_client import OffboardClientConfig
 from mavlink_bridge.security import KEY_ENV
 from mavlink_bridge.vehicle_link import VehicleLinkConfig
 from policy.training.settings import ConfigError
+from skyloop.placement import PinMode
 from skyloop.settings_base import (
     Repeated,
     Settings,
@@ -391,7 +392,7 @@ class UpCommand(EncodingFlag, SimRules, MavlinkPorts, SecurityFlags, PolicyFlag,
         "Ctrl-C) or save:PATH.rrd"), help_behavior_hint="(default: no viewer)")] = None
     viz_scan_every: Annotated[int, tyro.conf.arg(metavar="N")] = ViewFlags.scan_every
     """with --viz: draw the LiDAR scan every N steps"""
-    pin: Annotated[Literal["auto", "chain", "off"], tyro.conf.arg(help=(
+    pin: Annotated[PinMode, tyro.conf.arg(help=(
         "chain: the lockstep chain (sim, perception, policy, bridge, router) shares one "
         "core, the recorder and viewer run anywhere (skyloop.placement); auto: chain in "
         "lockstep without --log-dir or --viz, else off; off: the scheduler places every "

@@ -17,12 +17,12 @@ from skyloop.placement import CHAIN, Placement, plan
 
 def test_chain_gets_the_highest_cpu_and_the_rest_stay_free():
     p = plan("auto", lockstep=True, allowed={0, 1, 2, 3})
-    assert plan("chain", lockstep=True, beside=True, allowed={0, 1}) == Placement(
-        frozenset({1}))
     assert p == Placement(frozenset({3}))
     assert all(p.cpus(n) == {3} for n in CHAIN)
     assert p.cpus("record") is None and p.cpus("viz") is None
     assert plan("chain", lockstep=False, allowed={2, 5}) == Placement(frozenset({5}))
+    assert plan("chain", lockstep=True, beside=True, allowed={0, 1}) == Placement(
+        frozenset({1}))
 
 
 @pytest.mark.parametrize(("pin", "lockstep", "beside", "allowed"), [
@@ -54,9 +54,8 @@ def test_launcher_pins_a_child_before_exec():
 
 @pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
                     reason="needs Linux and two usable CPUs")
-@pytest.mark.parametrize("extra", [(), ("--router", "--log-dir", "LOG", "--pin", "chain")],
-                         ids=["auto", "chain-router-recorder"])
-def test_up_pins_the_lockstep_chain(tmp_path, extra):
+@pytest.mark.parametrize("recorded", [False, True], ids=["auto", "chain-router-recorder"])
+def test_up_pins_the_lockstep_chain(tmp_path, recorded):
     """A real ``skyloop up`` in lockstep: ``--pin auto`` with nothing beside the chain, and
     ``--pin chain`` beside a recorder with the router in the chain: every node of the
     chain on the highest CPU the launcher may use (as the kernel says at "go"), the
@@ -65,14 +64,15 @@ def test_up_pins_the_lockstep_chain(tmp_path, extra):
 
     out = tmp_path / "summary.json"
     root = Path(__file__).resolve().parent.parent
-    extra = tuple(str(tmp_path / "log") if a == "LOG" else a for a in extra)
+    extra = ("--router", "--log-dir", str(tmp_path / "log"), "--pin", "chain") if recorded \
+        else ()
     r = subprocess.run(up_args("--episodes", "1", "--policy", "scripted", "--json", str(out),
                                *extra), cwd=root, capture_output=True, text=True, timeout=180)
     assert r.returncode == 0, r.stdout + r.stderr
     s = json.loads(out.read_text())
     mine = sorted(os.sched_getaffinity(0))
-    chain = ("sim", "perception", "policy", "bridge") + (("router",) if extra else ())
+    chain = ("sim", "perception", "policy", "bridge") + (("router",) if recorded else ())
     assert s["pinned"] and {n: s["cpus"][n] for n in chain} == {n: [mine[-1]] for n in chain}
-    assert set(s["cpus"]) == set(chain) | ({"record"} if extra else set()), s["cpus"]
+    assert set(s["cpus"]) == set(chain) | ({"record"} if recorded else set()), s["cpus"]
     assert s["cpus"].get("record", mine) == mine, s["cpus"]
     assert f") shares CPU {mine[-1]}\n" in r.stdout, r.stdout
