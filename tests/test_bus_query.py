@@ -34,12 +34,15 @@ def test_query_answered_later_timeout_and_bad_request() -> None:
         thread = threading.Thread(target=owner, daemon=True)
         thread.start()
         try:
-            ack = None
-            for _ in range(50):  # the queryable's declaration takes a moment to be seen
+            # the queryable's declaration takes a moment to be seen (a query before it
+            # returns None at once): retry until a deadline, not a count, so a loaded
+            # machine does not use the tries up in milliseconds
+            ack, deadline = None, time.monotonic() + 20.0
+            while ack is None and time.monotonic() < deadline:
                 ack = client.query(keys.COMMAND, "uav1", m.vehicle_command("arm"),
                                    m.COMMAND_ACK, timeout=2.0)
-                if ack is not None:
-                    break
+                if ack is None:
+                    time.sleep(0.01)
             assert ack is not None and ack.accepted and ack.state == "ARMED"
             assert ack.revision == 7
             assert client.query(keys.COMMAND, "uav1", m.vehicle_command("land"),
