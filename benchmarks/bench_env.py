@@ -6,13 +6,13 @@ the scripted controller, median of several repeats. The peer runs in ``.venv-pee
 (see ``peer_pyflyt.py``); when that venv is missing the peer is reported as skipped.
 
 ``render_fps`` is ``env.render()`` alone (``render_mode="rgb_array"``, the fast 640x480
-renderer of ``sitl.render_fast``) on frames of a scripted episode, after the first
+renderer of ``sitl.render.frames``) on frames of a scripted episode, after the first
 frame and a few warm-up frames, median of several repeats; ``render_first_frame_ms`` is
 the first frame of a fresh env (the per-world map precompute and one frame), median of
 a few fresh envs.
 
 ``world_build_ms`` is what a new world drawn for an episode costs (``family:`` and
-``mix:`` scenarios, ``sitl.families``): the terrain, obstacles, collision structures,
+``mix:`` scenarios, ``sitl.world.families``): the terrain, obstacles, collision structures,
 free-space grid and the LiDAR's Embree scene (``EpisodeSim.use_world``), median over
 fresh worlds of each family, per family under ``world_build_ms_by_family``. Compare with
 an episode: ``env_steps_per_s`` and 100-300 steps.
@@ -91,7 +91,7 @@ def measure_pyflyt(steps: int, repeats: int) -> dict:
 def measure_world_build(worlds: int) -> dict:
     """Median ms to build a fresh world of each family into an episode core."""
     from sitl.episode import EpisodeSim
-    from sitl.families import VALIDATION_SEED0
+    from sitl.world.families import VALIDATION_SEED0
 
     sim = EpisodeSim()
     sim.use_world("forest#1")  # warm-up: numba kernels, Embree

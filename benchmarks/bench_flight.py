@@ -3,7 +3,7 @@
 Keys (medians of several repeats, one core):
 
 - ``fdm_steps_per_s``: JSBSim physics steps per second at dt = 1/500 s for the model
-  skyloop flies (JSBSim's F450 files + ``sitl/fcs/f450_attitude_rate.xml``), hovering
+  skyloop flies (JSBSim's F450 files + ``sitl/flight/fcs/f450_attitude_rate.xml``), hovering
   with the inner loops engaged.  ``fdm_control_steps_per_s`` is the same / 50, the
   ceiling for a 0.1 s control step.
 - ``flight_model_steps_per_s``: control steps per second of ``Vehicle.step`` (50 physics
@@ -29,8 +29,8 @@ import time
 import jsbsim
 import numpy as np
 
-from sitl.flight_model import FlightModel
-from sitl.vehicle import Vehicle, VehicleConfig
+from sitl.flight.flight_model import FlightModel
+from sitl.flight.vehicle import Vehicle, VehicleConfig
 
 
 def _timed(fn, count: int) -> float:

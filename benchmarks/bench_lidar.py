@@ -32,8 +32,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from sitl.lidar import Lidar, LidarConfig
-from sitl.world import UAV_BODY_RADIUS, World
+from sitl.lidar.scanner import Lidar, LidarConfig
+from sitl.world.world import UAV_BODY_RADIUS, World
 
 N_RAYS = 28_800
 

@@ -32,7 +32,7 @@ from mavlink_bridge.fuzz import FrameFuzzer, FuzzConfig
 from mavlink_bridge.security import LinkSecurity
 from mavlink_bridge.transport import UdpEndpoint
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLink, VehicleLinkConfig
-from sitl.commander import Commander
+from sitl.commander.machine import Commander
 
 NOW = 5.0
 BATCH = 64  # datagrams in flight before a poll (well inside the socket buffer)

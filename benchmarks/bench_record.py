@@ -63,7 +63,7 @@ def fly_episodes(n: int, scenario: str = "valley") -> list[dict]:
     dict of seed, start, goal and ``steps``, a list of (topic, msgtype, CDR bytes) in
     the order the sim node and the policy publish them."""
     from sitl.episode import EpisodeConfig, EpisodeSim
-    from sitl.node_util import quat_from_matrix, quat_from_yaw
+    from sitl.node.util import quat_from_matrix, quat_from_yaw
 
     sim = EpisodeSim(EpisodeConfig(scenario=scenario))
     lidar = sim.lidar.config

@@ -46,7 +46,7 @@ _FRAME = struct.Struct("<BHI")
 
 
 class SitlScene:
-    """Scenario geometry from ``sitl.world`` and the icosahedron from
+    """Scenario geometry from ``sitl.world.world`` and the icosahedron from
     ``perception.icosahedron``; the terrain decimated to at most ``max_terrain_triangles``
     (:func:`bus.ros_view.decimate_heightfield`; the scenarios' 55 m square at 0.25 m is
     96,800 triangles; at 4,000 the valley's stays within 0.24 m of it, forest's and
@@ -60,21 +60,21 @@ class SitlScene:
         """What the recorder's own process needs: the icosahedron's module and the
         aircraft kernel's first call (numba, ~0.4 s), off the writer thread."""
         import perception.icosahedron  # noqa: F401
-        from sitl.aircraft import aircraft_pose
+        from sitl.world.aircraft import aircraft_pose
 
         aircraft_pose(np.zeros((1, 2, 3)), np.zeros((1, 2)), np.array([2]), np.zeros((1, 6)),
                       0, 0.0)
 
 
     def aircraft(self, scenario: str) -> Callable[[float], np.ndarray] | None:
-        from sitl.aircraft import Fleet
-        from sitl.scenario import load_scenario
+        from sitl.world.aircraft import Fleet
+        from sitl.world.scenario import load_scenario
 
         fleet = Fleet.from_config(load_scenario(scenario).aircraft)
         return fleet.boxes if len(fleet) else None
 
     def world(self, scenario: str) -> WorldGeometry:
-        from sitl.world import UAV_BODY_RADIUS, World, load_scenario
+        from sitl.world.world import UAV_BODY_RADIUS, World, load_scenario
 
         world = World(load_scenario(scenario))
         t = world.terrain
@@ -189,7 +189,7 @@ def serve(stdin: IO[bytes], stdout: IO[bytes], scene: Any,
             built[name] = encode(world_markers(scene.world(name)))
         return built[name]
 
-    from sitl.families import WorldSource
+    from sitl.world.families import WorldSource
 
     for name in prebuilt:
         try:

@@ -300,7 +300,7 @@ def clock(stamp: Any) -> Any:
 
 def static_tf() -> Any:
     """``/tf_static``: base_link -> lidar, identity (the scan is in the body frame at the
-    body's origin, see ``sitl.lidar``), stamped 0 (valid at all times)."""
+    body's origin, see ``sitl.lidar.scanner``), stamped 0 (valid at all times)."""
     return tf_message([transform(FRAME_BASE, FRAME_LIDAR, 0.0, (0, 0, 0), (0, 0, 0, 1))])
 
 

@@ -6,7 +6,7 @@ skyloop (simulator, perception, policy) works in:
   east, yaw rate positive counter-clockwise;
 * body **FLU**: x forward, y left, z up (REP 103). Euler angles of a FLU body in ENU are
   the ZYX angles (yaw, pitch, roll) of ``R_enu_flu = Rz(yaw) Ry(pitch) Rx(roll)``, so
-  pitch is positive nose *down* (as ``sitl.vehicle.VehicleState.rpy``) and roll is
+  pitch is positive nose *down* (as ``sitl.flight.vehicle.VehicleState.rpy``) and roll is
   positive right side down.
 
 MAVLink / PX4 works in:

@@ -10,7 +10,7 @@ runs in-process (tests, a single-process sim) and later behind Zenoh:
 * :class:`CommanderLike` -- the vehicle's commander as the bridge sees it: arm, disarm,
   takeoff, land, set mode (RTL included), each answered with a :class:`Verdict`; plus
   the state the heartbeat reports. The commander lives in the simulator process
-  (``sitl.commander.Commander``, which satisfies this structurally and is what the
+  (``sitl.commander.machine.Commander``, which satisfies this structurally and is what the
   in-process tests use); the bridge node uses ``mavlink_bridge.node.CommanderProxy``,
   which sends each request to it as a Zenoh query and reports its published status
   (a request it cannot get answered in time is refused as ``"busy"``). Goals (missions,

@@ -9,7 +9,7 @@ so OFFBOARD = 6 << 16 = 393216 and AUTO.LAND = (6 << 24) | (4 << 16). A mode cha
 COMMAND_LONG MAV_CMD_DO_SET_MODE with param1 = base mode flags (CUSTOM_MODE_ENABLED),
 param2 = main mode, param3 = sub mode.
 
-The vehicle's commander (``sitl.commander``) names its states with plain strings
+The vehicle's commander (``sitl.commander.machine``) names its states with plain strings
 (``"DISARMED"``, ``"ARMED"``, ``"TAKEOFF"``, ``"OFFBOARD"``, ``"HOLD"``, ``"LAND"``,
 ``"RTL"``); :func:`px4_mode_for_state` and :func:`state_for_px4_mode` are the mapping
 between those names and PX4 modes, so ``mavlink_bridge`` needs no import of ``sitl``.
@@ -111,7 +111,7 @@ AUTO_LAND = Px4Mode(MainMode.AUTO, AutoSubMode.LAND)
 
 # Commander state name -> the PX4 mode the heartbeat reports. On the ground (disarmed or
 # armed idle) PX4 usually sits in Hold (AUTO.LOITER); so do we. "TAKEOFF" comes disarmed
-# too (a takeoff waiting for arming, see sitl.commander): AUTO.TAKEOFF, as PX4 reports it.
+# too (a takeoff waiting for arming, see sitl.commander.machine): AUTO.TAKEOFF, as PX4 reports it.
 _STATE_TO_PX4: dict[str, Px4Mode] = {
     "DISARMED": AUTO_LOITER,
     "ARMED": AUTO_LOITER,

@@ -1,7 +1,7 @@
 """The bridge node (``skyloop bridge``): the vehicle's MAVLink face on the bus.
 
 Design (issue 5): the commander and its failsafes live in the vehicle (``skyloop sim``,
-:mod:`sitl.vehicle_service`), so they act even when this process dies. The bridge is
+:mod:`sitl.node.vehicle_service`), so they act even when this process dies. The bridge is
 only the MAVLink endpoint: :class:`~mavlink_bridge.vehicle_link.VehicleLink` (PX4 SITL
 ports: API link 14580 -> 14540, GCS link 18570 -> 14550) answers heartbeats and
 COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.

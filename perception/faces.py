@@ -1,6 +1,6 @@
 """Reduce a point cloud to the 32 truncated-icosahedron face values (paper section 3.1).
 
-Points are UAV-centred (sensor frame, metres), as :meth:`sitl.lidar.Lidar.scan` returns
+Points are UAV-centred (sensor frame, metres), as :meth:`sitl.lidar.scanner.Lidar.scan` returns
 them. For each point ``p``:
 
 - eq. 3.1, inclusion test: ``p`` is inside the solid when ``n_i . p <= d_i`` for all 32

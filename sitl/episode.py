@@ -8,7 +8,7 @@ setpoints -> same trajectory.
 Reset draws, from ``numpy.random.default_rng(seed)`` (the same generator Gymnasium's
 ``reset(seed=...)`` builds): start and goal (``World.sample_start_goal``), the initial
 yaw uniform in [-pi, pi), then one sub-seed for the vehicle's sensors (the LiDAR noise
-uses sub-seed + 1). With a family or a mixture of worlds (``sitl.families``), reset
+uses sub-seed + 1). With a family or a mixture of worlds (``sitl.world.families``), reset
 first draws the world (family, then seed) from the same generator.
 
 After each control step of an episode, :meth:`EpisodeSim.record` gives the step's
@@ -26,17 +26,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bus.task import StepRecord, TaskSpec, goal_angles
-from sitl.families import WorldSource
-from sitl.lidar import Lidar, LidarConfig
-from sitl.vehicle import Vehicle, VehicleConfig
-from sitl.world import UAV_BODY_RADIUS, World, load_scenario
+from sitl.flight.vehicle import Vehicle, VehicleConfig
+from sitl.lidar.scanner import Lidar, LidarConfig
+from sitl.world.families import WorldSource
+from sitl.world.world import UAV_BODY_RADIUS, World, load_scenario
 
 WORLD_CACHE = 4  # worlds kept built (evaluation cycles through a few)
 
 
 @dataclass
 class EpisodeConfig:
-    scenario: str = "valley"  # a world, or worlds drawn per episode (sitl.families)
+    scenario: str = "valley"  # a world, or worlds drawn per episode (sitl.world.families)
     world_every: int = 1  # family:/mix: scenarios: a new world every N episodes
     lidar_max_range: float = 4.5  # the observation only needs points inside p_radius = 4 m
     lidar_noise_sigma: float = 0.03

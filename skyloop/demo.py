@@ -20,7 +20,7 @@ from policy.training.rollout import run_episodes, summarize
 
 def run_demo(scenario: str, episodes: int, seed: int, out_dir: Path,
              policy: str | None = None) -> dict:
-    from sitl.render import render_scene
+    from sitl.render.scene import render_scene
 
     controller = make_controller(policy, task=None)
     print(f"skyloop demo: {episodes} episodes of '{scenario}' flown by the "

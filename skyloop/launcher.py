@@ -35,7 +35,7 @@ again (at most ``--max-restarts`` times each, named with its last log line each 
 with the policy when another is restarted (:data:`RESTARTABLE`; Zenoh clients reconnect
 to a restarted router by themselves, in about 2.5 s), and the run goes on:
 the vehicle's failsafe holds meanwhile, the episode in progress ends ``aborted``
-(``sitl.node``) and the next one starts once the restarted policy is in OFFBOARD; the
+(``sitl.node.node``) and the next one starts once the restarted policy is in OFFBOARD; the
 summary counts the restarts. The sim and the recorder are never restarted (a new sim
 would be a new run; a new recorder a second log).
 
@@ -76,7 +76,7 @@ from skyloop.placement import Placement, plan
 from skyloop.signals import Stopped, block_until_started, stop_on_sigterm
 from skyloop.stack_settings import UpCommand
 
-# The lines the nodes print (sitl.node / policy.nodes.node; not imported: --help stays light);
+# The lines the nodes print (sitl.node.node / policy.nodes.node; not imported: --help stays light);
 # the READY lines are for people reading the output: readiness comes over the bus.
 EPISODE_LINE = "SKYLOOP-EPISODE "
 SUMMARY_LINE = "SKYLOOP-SUMMARY "

@@ -12,9 +12,9 @@ import numpy as np
 
 from perception.faces import face_values
 from perception.icosahedron import TruncatedIcosahedron
-from sitl.lidar import Lidar, LidarConfig
-from sitl.render import render_scene
-from sitl.world import World, load_scenario
+from sitl.lidar.scanner import Lidar, LidarConfig
+from sitl.render.scene import render_scene
+from sitl.world.world import World, load_scenario
 
 
 def render_scenario(scenario: str, seed: int, out: Path) -> Path:

@@ -55,7 +55,7 @@ def _raise_on_term() -> None:
 
 # ----------------------------------------------------------------------------- nodes
 def cmd_sim(args: SimCommand) -> int:
-    from sitl.node import SimNode, SimNodeConfig
+    from sitl.node.node import SimNode, SimNodeConfig
 
     _raise_on_term()
     values = args.params

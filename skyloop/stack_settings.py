@@ -18,7 +18,7 @@ Where a default belongs to a config of the code the flags feed, it is read from 
 the episode limits from the task specification (``bus.task.TASK``), the MAVLink ports
 from ``mavlink_bridge.vehicle_link.VehicleLinkConfig`` and
 ``mavlink_bridge.offboard_client.OffboardClientConfig``. The sim's
-(``sitl.node_step.SimNodeConfig``) are not imported here (seconds of imports before
+(``sitl.node.step.SimNodeConfig``) are not imported here (seconds of imports before
 ``--help``); :class:`SimCommand` always passes its values on, and
 tests/test_cli_nodes.py checks both agree. Only light modules are imported here.
 """
@@ -92,7 +92,7 @@ class ParamValues:
 @dataclass(kw_only=True)
 class ScenarioFlag(Settings):
     scenario: str = "valley"
-    """a world, family:NAME or mix:A=w,B=w (sitl.scenario, sitl.families)"""
+    """a world, family:NAME or mix:A=w,B=w (sitl.world.scenario, sitl.world.families)"""
 
 
 @dataclass(kw_only=True)
@@ -257,8 +257,8 @@ class PolicyFlag(Settings):
 # ----------------------------------------------------------------------------- commands
 @dataclass(kw_only=True)
 class SimCommand(SimRules, ClockFlags, BusFlags):
-    """``skyloop sim``: the simulator node (``sitl.node.SimNode``). Its defaults repeat
-    ``sitl.node_step.SimNodeConfig``'s (episodes, seed, lockstep timeout...) on purpose:
+    """``skyloop sim``: the simulator node (``sitl.node.node.SimNode``). Its defaults repeat
+    ``sitl.node.step.SimNodeConfig``'s (episodes, seed, lockstep timeout...) on purpose:
     importing the simulator costs every command line ~1 s (JSBSim, Embree), and this
     module is read for each one; tests/test_cli_nodes.py
     (``test_defaults_agree_with_the_configs_they_feed``) fails when they part."""

@@ -204,7 +204,7 @@ class RunView:
     def warm(self, scenario: str) -> None:
         """Build the world of ``scenario`` ahead of its first episode (a family or a
         mixture: its template, not drawn, which warms the compiled kernels)."""
-        from sitl.families import WorldSource
+        from sitl.world.families import WorldSource
 
         source = WorldSource.parse(scenario)
         if source.fixed:

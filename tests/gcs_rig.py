@@ -1,6 +1,6 @@
 """A pymavlink ground station talking to a VehicleLink over real UDP on 127.0.0.1.
 
-The vehicle side is a real ``sitl.commander.Commander``, a kinematic point vehicle and a
+The vehicle side is a real ``sitl.commander.machine.Commander``, a kinematic point vehicle and a
 :class:`~mavlink_bridge.vehicle_link.VehicleLink` on a simulated clock (``DT`` per tick).
 Loopback UDP delivers a datagram before ``sendto`` returns, so "send, tick, drain" needs
 no sleeps; every count is over simulated time.
@@ -17,7 +17,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from mavlink_bridge.interfaces import VehicleTelemetry  # noqa: E402
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLink, VehicleLinkConfig  # noqa: E402
-from sitl.commander import Commander, VehicleSample  # noqa: E402
+from sitl.commander.machine import Commander, VehicleSample  # noqa: E402
 
 mavutil.set_dialect("common")
 DT = 0.02

@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from sitl.autopilot import VelocityAutopilot
-from sitl.vehicle import Vehicle
+from sitl.flight.autopilot import VelocityAutopilot
+from sitl.flight.vehicle import Vehicle
 
 START = np.array([0.0, 0.0, 3.5])
 
@@ -42,7 +42,7 @@ def test_non_finite_setpoints_rejected_last_valid_holds(bad: object) -> None:
 
 def test_rejections_logged_without_flooding(caplog: pytest.LogCaptureFixture) -> None:
     ap = VelocityAutopilot()
-    with caplog.at_level("WARNING", logger="sitl.autopilot"):
+    with caplog.at_level("WARNING", logger="sitl.flight.autopilot"):
         for _ in range(100):
             ap.set_setpoint(math.nan, 0.0, 0.0, 0.0)
     assert ap.rejected == 100

@@ -161,7 +161,7 @@ def test_defaults_agree_with_the_configs_they_feed():
     """The sim's defaults are ``SimNodeConfig``'s, the ports the MAVLink configs'."""
     from mavlink_bridge.offboard_client import OffboardClientConfig
     from mavlink_bridge.vehicle_link import VehicleLinkConfig
-    from sitl.node_step import SimNodeConfig
+    from sitl.node.step import SimNodeConfig
 
     sim, node = SimCommand(), SimNodeConfig()
     assert (sim.scenario, sim.episodes, sim.seed, sim.vehicle, sim.realtime, sim.max_steps,

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from sitl.commander import (
+from sitl.commander.machine import (
     Commander,
     CommanderConfig,
     Setpoint,

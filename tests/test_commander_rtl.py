@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from sitl.commander import Commander, CommanderConfig, Setpoint, State, VehicleSample
+from sitl.commander.machine import Commander, CommanderConfig, Setpoint, State, VehicleSample
 
 DT = 0.1
 

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from sitl.estimator import Estimator
-from sitl.sensors import Sensors
-from sitl.vehicle import Vehicle
+from sitl.flight.estimator import Estimator
+from sitl.flight.sensors import Sensors
+from sitl.flight.vehicle import Vehicle
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Worlds drawn per episode (sitl.families): family and mixture specs, world variants,
+"""Worlds drawn per episode (sitl.world.families): family and mixture specs, world variants,
 seeded draws, disjoint seed ranges, evaluation on held-out worlds."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 from loopback import up_args
 
 from policy.training.env import UavNavEnv
-from sitl.families import (
+from sitl.world.families import (
     EVAL_SEED0,
     TRAIN_SEEDS,
     VALIDATION_SEED0,
@@ -20,8 +20,8 @@ from sitl.families import (
     check_scenario,
     eval_worlds,
 )
-from sitl.scenario import ScenarioError, load_scenario
-from sitl.world import World
+from sitl.world.scenario import ScenarioError, load_scenario
+from sitl.world.world import World
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sitl.flight_model import FlightModel, enu_rpy, rotation_flu_to_enu
+from sitl.flight.flight_model import FlightModel, enu_rpy, rotation_flu_to_enu
 
 
 @pytest.fixture(scope="module")

@@ -60,7 +60,7 @@ def test_policy_counts_what_its_full_inboxes_drop(buses) -> None:
 
 
 def test_sim_counts_what_its_full_inboxes_drop(buses) -> None:
-    from sitl.node import SimNode, SimNodeConfig
+    from sitl.node.node import SimNode, SimNodeConfig
 
     node_bus, bus = buses
     node = SimNode(node_bus, SimNodeConfig(realtime=True, match_timeout_s=0.1))

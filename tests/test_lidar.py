@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sitl.lidar import Lidar, LidarConfig
-from sitl.obstacles import box_solid
-from sitl.scenario import load_scenario
-from sitl.world import World
+from sitl.lidar.scanner import Lidar, LidarConfig
+from sitl.world.obstacles import box_solid
+from sitl.world.scenario import load_scenario
+from sitl.world.world import World
 
 ENGINES = ["numba", "embree"]
 FLAT = """

@@ -30,8 +30,8 @@ def test_cloud_has_the_vlp16_fields_and_perception_still_reads_xyz():
 def test_rings_are_the_lidar_channels():
     """Each return's ring recovered from its elevation is the channel of its ray (rays
     are column-major, ``channel = ray % 16``), on a full-range forest scan."""
-    from sitl.lidar import Lidar, LidarConfig
-    from sitl.world import World, load_scenario
+    from sitl.lidar.scanner import Lidar, LidarConfig
+    from sitl.world.world import World, load_scenario
 
     lidar = Lidar(World(load_scenario("forest")),
                   LidarConfig(max_range=100.0, min_range=0.0, noise_sigma=0.0))
@@ -493,7 +493,7 @@ def test_flight_log_cloud_path_aircraft_and_faces(flight, flight_messages):
         np.testing.assert_allclose([[p.pose.position.x, p.pose.position.y, p.pose.position.z]
                                     for p in path.poses], truth)
     # aircraft at the episode's time (stamp - START stamp), as the simulator's world has them
-    from sitl.world import World, load_scenario
+    from sitl.world.world import World, load_scenario
 
     world = World(load_scenario("dynamic"))
     start_ns = None

@@ -23,7 +23,7 @@ from mavlink_bridge.fuzz import FrameFuzzer, FuzzConfig
 from mavlink_bridge.interfaces import VelocityCommand
 from mavlink_bridge.security import LinkSecurity, SigningMAVLink
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLink, VehicleLinkConfig
-from sitl.commander import Commander, State
+from sitl.commander.machine import Commander, State
 
 KEY = bytes(range(100, 132))
 NOW = 5.0

@@ -37,7 +37,7 @@ from mavlink_bridge.offboard_client import (  # noqa: E402
     OffboardClientConfig,
 )
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLink, VehicleLinkConfig  # noqa: E402
-from sitl.commander import Commander, State, VehicleSample  # noqa: E402
+from sitl.commander.machine import Commander, State, VehicleSample  # noqa: E402
 
 mavutil.set_dialect("common")
 DT = 0.02

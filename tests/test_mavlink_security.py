@@ -38,7 +38,7 @@ from mavlink_bridge.security import (  # noqa: E402
 )
 from mavlink_bridge.transport import UdpEndpoint  # noqa: E402
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLink, VehicleLinkConfig  # noqa: E402
-from sitl.commander import State  # noqa: E402
+from sitl.commander.machine import State  # noqa: E402
 
 KEY = hashlib.sha256(b"skyloop test key").digest()
 OTHER_KEY = hashlib.sha256(b"not the key").digest()

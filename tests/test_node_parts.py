@@ -10,10 +10,10 @@ import time
 import pytest
 
 from bus import messages as m
-from sitl.commander import State
+from sitl.commander.machine import State
 from sitl.episode import EpisodeConfig
-from sitl.node_pacing import CommandGate, Pacer, Rejoin, StackClock
-from sitl.node_step import SimNodeConfig
+from sitl.node.pacing import CommandGate, Pacer, Rejoin, StackClock
+from sitl.node.step import SimNodeConfig
 
 PERIOD_NS = 100_000_000
 

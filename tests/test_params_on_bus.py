@@ -1,7 +1,7 @@
 """Ground-station parameters reach the nodes that apply them (issue 5 §1).
 
 Real parts on loopback: the bridge node (own thread) with a pymavlink ground station on
-its GCS link, the sim's :class:`~sitl.vehicle_service.VehicleService` (what applies the
+its GCS link, the sim's :class:`~sitl.node.vehicle_service.VehicleService` (what applies the
 sim's parameters) and a :class:`~perception.node.PerceptionNode` (``SKY_ICO_RADIUS``),
 each on its own Zenoh session. Checked: when the vehicle appears the bridge sends its
 chosen values (the file's and ``--param`` overrides, which are not persisted); a PARAM_SET from the
@@ -31,8 +31,8 @@ from mavlink_bridge.node import BridgeNode  # noqa: E402
 from mavlink_bridge.transport import mavlink  # noqa: E402
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig  # noqa: E402
 from perception.node import PerceptionNode  # noqa: E402
-from sitl.commander import Commander  # noqa: E402
-from sitl.vehicle_service import VehicleService  # noqa: E402
+from sitl.commander.machine import Commander  # noqa: E402
+from sitl.node.vehicle_service import VehicleService  # noqa: E402
 
 
 def _param_set(gcs, name: str, value: float) -> None:

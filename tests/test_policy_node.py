@@ -24,8 +24,8 @@ from mavlink_bridge.transport import mavlink  # noqa: E402
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig  # noqa: E402
 from perception.observation import ObservationConfig, scaling_fields  # noqa: E402
 from policy.nodes.node import MAX_BAD_ACTIONS, PolicyNode  # noqa: E402
-from sitl.commander import Commander  # noqa: E402
-from sitl.vehicle_service import VehicleService  # noqa: E402
+from sitl.commander.machine import Commander  # noqa: E402
+from sitl.node.vehicle_service import VehicleService  # noqa: E402
 
 
 def stop_all(stop: threading.Event, threads, closers, buses) -> None:
@@ -150,7 +150,7 @@ def test_a_policy_started_beside_a_crashed_vehicle_joins_once_it_is_placed(tmp_p
     armed). Both times start() tries again from arming and joins in OFFBOARD, instead of
     exiting (the chaos test's restarted policy did, on each, and the run ran out of
     restarts)."""
-    from sitl.commander import State
+    from sitl.commander.machine import State
 
     cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
     buses = [Bus.open(cfg) for _ in range(3)]

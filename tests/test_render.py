@@ -7,9 +7,9 @@ from pathlib import Path
 import matplotlib.image as mpimg
 import numpy as np
 
-from sitl.lidar import Lidar, LidarConfig
-from sitl.render import render_scene
-from sitl.world import World
+from sitl.lidar.scanner import Lidar, LidarConfig
+from sitl.render.scene import render_scene
+from sitl.world.world import World
 
 
 def test_render_full_scene(tmp_path: Path) -> None:

@@ -1,4 +1,4 @@
-"""The env's fast rgb_array renderer (sitl.render_fast): frame, content, RecordVideo.
+"""The env's fast rgb_array renderer (sitl.render.frames): frame, content, RecordVideo.
 
 Speed is measured in benchmarks/bench_env.py (``render_fps``), not asserted here.
 """
@@ -13,9 +13,9 @@ import pytest
 
 from policy.training.env import EnvConfig, UavNavEnv
 from sitl.episode import EpisodeConfig
-from sitl.obstacles import box_solid
-from sitl.render_fast import FRONT, FastRenderer
-from sitl.world import World
+from sitl.render.frames import FRONT, FastRenderer
+from sitl.world.obstacles import box_solid
+from sitl.world.world import World
 
 
 @pytest.fixture(scope="module")

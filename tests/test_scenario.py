@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from sitl.scenario import SCENARIO_DIR, Scenario
-from sitl.world import ScenarioError, load_scenario, scenario_names
+from sitl.world.scenario import SCENARIO_DIR, Scenario
+from sitl.world.world import ScenarioError, load_scenario, scenario_names
 
 GOOD = """
 name = "tiny"

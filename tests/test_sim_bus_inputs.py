@@ -16,7 +16,7 @@ from bus import keys
 from bus import messages as m
 from bus.node import Bus
 from bus.session import SessionConfig
-from sitl.node import SimNode, SimNodeConfig
+from sitl.node.node import SimNode, SimNodeConfig
 
 
 @pytest.fixture

@@ -1,6 +1,6 @@
 """The bridge node as the vehicle's MAVLink face, over real loopback Zenoh and UDP.
 
-The vehicle side is the sim's real :class:`~sitl.vehicle_service.VehicleService` (the
+The vehicle side is the sim's real :class:`~sitl.node.vehicle_service.VehicleService` (the
 commander's requests, status and events on the bus) without the flight model: the test
 serves it, and offers it the ``cmd_vel`` setpoints, between the offboard client's polls.
 Checked: no heartbeat until the vehicle reported a status; arm/takeoff/offboard reach
@@ -33,8 +33,8 @@ from mavlink_bridge.offboard_client import (
 )
 from mavlink_bridge.transport import mavlink
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
-from sitl.commander import Commander, State, VehicleSample
-from sitl.vehicle_service import VehicleService
+from sitl.commander.machine import Commander, State, VehicleSample
+from sitl.node.vehicle_service import VehicleService
 
 
 class Graph:

@@ -361,8 +361,8 @@ def test_cpu_time_of_a_child_is_read_until_it_is_reaped():
 
 def test_launcher_lines_match_nodes():
     from policy.nodes.node import READY_LINE
-    from sitl.node import EPISODE_LINE, SUMMARY_LINE
-    from sitl.node import READY_LINE as SIM_READY_LINE
+    from sitl.node.node import EPISODE_LINE, SUMMARY_LINE
+    from sitl.node.node import READY_LINE as SIM_READY_LINE
 
     assert (launcher.EPISODE_LINE, launcher.SUMMARY_LINE, launcher.READY_LINE,
             launcher.SIM_READY_LINE) == (EPISODE_LINE, SUMMARY_LINE, READY_LINE, SIM_READY_LINE)
@@ -437,7 +437,7 @@ def assert_failsafe_timing(events: list[tuple[str, float, float]], loss_s: float
     follows the step whose event it carries, so that step's time is the status's
     ``vehicle_time`` less a period. Returns what was seen, None if the vehicle crashed
     before any HOLD (nothing to time)."""
-    from sitl.vehicle import VehicleConfig
+    from sitl.flight.vehicle import VehicleConfig
 
     period = VehicleConfig().control_period  # the sim's (its default)
     texts = [text for text, _, _ in events]

@@ -26,8 +26,8 @@ from bus import params
 from mavlink_bridge.modes import AUTO_LOITER, AUTO_TAKEOFF, BaseMode
 from mavlink_bridge.telemetry import TelemetryReporter
 from mavlink_bridge.vehicle_link import takeoff_altitude
-from sitl.commander import Commander, State
-from sitl.vehicle_service import apply_param
+from sitl.commander.machine import Commander, State
+from sitl.node.vehicle_service import apply_param
 
 NAN = math.nan
 

@@ -70,8 +70,8 @@ def test_env_networks_and_replay_take_their_sizes_from_the_spec():
 def test_parameters_hold_the_only_defaults_and_set_the_fields_they_name():
     from bus import params
     from perception.observation import ObservationConfig
-    from sitl.commander_types import CommanderConfig
-    from sitl.vehicle import VehicleConfig
+    from sitl.commander.types import CommanderConfig
+    from sitl.flight.vehicle import VehicleConfig
 
     cfg, vehicle = CommanderConfig(), VehicleConfig()
     owners = {"commander": cfg, "autopilot": vehicle, "observation": ObservationConfig()}

@@ -287,7 +287,7 @@ def test_mixture_runs_log_each_world_and_keep_snapshots(tmp_path, sync):
 
     from policy.training.evaluate import ActorController
     from policy.training.train import episode_seed
-    from sitl.families import WorldSource
+    from sitl.world.families import WorldSource
 
     spec = "mix:valley,forest,city,dynamic"
     _train(tmp_path, 4, scenario=spec, snapshot_every=2, sync=sync)

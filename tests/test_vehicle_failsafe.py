@@ -32,7 +32,7 @@ from bus import keys
 from bus import messages as m
 from bus.node import Bus
 from bus.session import SessionConfig
-from sitl.vehicle import VehicleConfig
+from sitl.flight.vehicle import VehicleConfig
 from skyloop.launcher import Graph
 
 LOSS_S, HOLD_LAND_S = 0.5, 1.0  # COM_OF_LOSS_T, SKY_HOLD_LAND_T

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from sitl.world import UAV_BODY_RADIUS, World
+from sitl.world.world import UAV_BODY_RADIUS, World
 
 
 @cache

@@ -16,7 +16,7 @@ import numpy as np
 from bus.task import TASK
 from policy.training.env import UavNavEnv
 from policy.training.evaluate import ActorController
-from sitl.families import eval_worlds
+from sitl.world.families import eval_worlds
 
 
 def main() -> None:

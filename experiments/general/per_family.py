@@ -2,7 +2,7 @@
 
 A mixture run's ``episodes.csv`` does not name the world each episode flew, but the
 world is the first thing an episode's reset draws from its seed (``sitl.episode``,
-``sitl.families.WorldSource.draw``; episode ``i`` of a run with seed ``s`` has seed
+``sitl.world.families.WorldSource.draw``; episode ``i`` of a run with seed ``s`` has seed
 ``policy.training.train.episode_seed(s, i)``), so it is recovered exactly here.
 
     python experiments/general/per_family.py RUN_DIR [RUN_DIR ...] --out FIG.png
@@ -25,7 +25,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from policy.training.train import episode_seed  # noqa: E402
-from sitl.families import WorldSource  # noqa: E402
+from sitl.world.families import WorldSource  # noqa: E402
 
 WINDOW = 250
 

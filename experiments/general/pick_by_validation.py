@@ -4,7 +4,7 @@ A mixture run's last actor is not its best (experiments/general/README.md: seed 
 the open worlds after episode ~600), so every actor the run kept over training
 (``RUN/snapshots/actor-ep<N>.pt``, and ``RUN/actor.pt``, the last) flies
 ``--episodes`` episodes on ``--worlds`` **validation** worlds of each family
-(``sitl.families.eval_worlds(..., validation=True)``: seeds from 2,147,483,648, disjoint
+(``sitl.world.families.eval_worlds(..., validation=True)``: seeds from 2,147,483,648, disjoint
 from training and from the held-out worlds the final table uses).
 
 The pick: the actor with the largest worst margin over the issue's goals,

@@ -22,7 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from policy.training.evaluate import EVAL_SEED, env_for, make_controller  # noqa: E402
-from sitl.families import eval_worlds  # noqa: E402
+from sitl.world.families import eval_worlds  # noqa: E402
 
 
 def main() -> None:

@@ -8,7 +8,7 @@ action bound: TD3Config.exploration_noise), and prints the outcomes of both.
     python experiments/paper_dynamic/noise_probe.py TRIAL_DIR [TRIAL_DIR ...] --episodes 100
 
 With ``--family NAME --worlds N`` episode i flies held-out world i % N of that family
-(``sitl.families.eval_worlds``, as ``skyloop eval --scenario family:NAME --worlds N``)
+(``sitl.world.families.eval_worlds``, as ``skyloop eval --scenario family:NAME --worlds N``)
 instead of the trial's own scenario (issue 14's mixture policy on open worlds).
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 
 from policy.algorithms.td3 import TD3Config, explore
 from policy.training.evaluate import EVAL_SEED, env_for, make_controller
-from sitl.families import eval_worlds
+from sitl.world.families import eval_worlds
 
 
 def fly(trial: Path, episodes: int, sigma: float, family: str | None = None,

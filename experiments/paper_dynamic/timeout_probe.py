@@ -23,7 +23,7 @@ import numpy as np
 
 from policy.algorithms.rewards import RewardConfig, step_reward
 from policy.training.evaluate import EVAL_SEED, env_for, make_controller
-from sitl.families import eval_worlds
+from sitl.world.families import eval_worlds
 
 TAIL = 50  # steps at the end of a timeout that are summarised
 

@@ -3,9 +3,9 @@
 One control step (0.1 s) is the same pipeline the process graph runs, in one process:
 
     action (body-horizontal vx, vy, vz, yaw_rate) -> world ENU velocity setpoint
-    -> JSBSim F450 + velocity autopilot for 50 physics steps (sitl.vehicle)
-    -> collision check of the true body sphere (sitl.world)
-    -> VLP-16 scan at the true pose (sitl.lidar)
+    -> JSBSim F450 + velocity autopilot for 50 physics steps (sitl.flight.vehicle)
+    -> collision check of the true body sphere (sitl.world.world)
+    -> VLP-16 scan at the true pose (sitl.lidar.scanner)
     -> 32 icosahedron faces + altitude, h, g from the estimate (perception)
     -> the step's record (``EpisodeSim.record``: D_pre, D_cur, altitude, h, g,
        collision, outcome; ``info["record"]``) -> reward eq. 3.5 from it
@@ -35,10 +35,10 @@ from perception.icosahedron import TruncatedIcosahedron
 from perception.observation import FrameStacker, ObservationConfig, observation_from_scan
 from policy.algorithms.rewards import RewardConfig, step_reward
 from sitl.episode import EpisodeConfig, EpisodeSim, body_to_world
-from sitl.render_fast import FastRenderer
+from sitl.render.frames import FastRenderer
 
 OBS_DIM, MAX_ACTION = TASK.obs_dim, TASK.max_action  # bus.task
-RENDER_BACKENDS = ("fast", "matplotlib")  # render_mode="rgb_array": sitl.render_fast, sitl.render
+RENDER_BACKENDS = ("fast", "matplotlib")  # rgb_array: sitl.render.frames, .scene
 
 
 @dataclass
@@ -151,12 +151,12 @@ class UavNavEnv(gymnasium.Env):
     def render(self) -> np.ndarray | None:
         """The current frame as RGB uint8 with ``render_mode="rgb_array"`` (else None).
 
-        ``render_backend="fast"`` (default): 640x480 from :mod:`sitl.render_fast`, a
+        ``render_backend="fast"`` (default): 640x480 from :mod:`sitl.render.frames`, a
         top-down map (terrain, obstacles, aircraft, goal, trail, LiDAR returns, the
         vehicle and its icosahedron ring) and a panel (face charts, altitude and
         distance-to-goal charts, status); the map is precomputed on the first frame of a
         world (~0.1 s), then a frame takes milliseconds, so ``RecordVideo`` is
-        practical. ``"matplotlib"``: the 960x480 picture of :mod:`sitl.render` (top and
+        practical. ``"matplotlib"``: the 960x480 picture of :mod:`sitl.render.scene` (top and
         3D views), about a second a frame.
         """
         if self.render_mode != "rgb_array":
@@ -178,7 +178,7 @@ class UavNavEnv(gymnasium.Env):
                 start=self.start, goal=self.goal, points=self._points,
                 face_values=self._faces, velocity=truth.velocity, t=self.sim.time,
                 step=self.steps, outcome=outcome)
-        from sitl.render import render_scene
+        from sitl.render.scene import render_scene
 
         return render_scene(
             self.world,
@@ -222,5 +222,5 @@ class UavNavEnv(gymnasium.Env):
             "position": self.vehicle.truth.position.copy(),
             "goal": self.goal.copy(),
             "steps": self.steps,
-            "world": self.sim.world_name,  # the drawn world's NAME#SEED (sitl.families)
+            "world": self.sim.world_name,  # the drawn world's NAME#SEED (sitl.world.families)
         }

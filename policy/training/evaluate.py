@@ -132,9 +132,9 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
              worlds: int | None = None, validation: bool = False) -> dict:
     """Fly ``episodes`` deterministic episodes (seeds ``seed, seed + 1, ...``). With
     ``scenario="family:NAME"`` and ``worlds=N``: episode ``i`` flies held-out world
-    ``i % N`` of the family (``sitl.families.eval_worlds``; ``validation``: the
+    ``i % N`` of the family (``sitl.world.families.eval_worlds``; ``validation``: the
     validation worlds), never one drawn in training."""
-    from sitl.families import WorldSource, eval_worlds
+    from sitl.world.families import WorldSource, eval_worlds
 
     source = WorldSource.parse(scenario)
     if worlds is not None and not scenario.startswith("family:"):  # one family, parsed

@@ -79,7 +79,7 @@ class TrainConfig:
     """the agent"""
     reward: Reward = "abr"
     """the goal reward: TR, NGR, EGR or ABR (abr-method.md)"""
-    # sitl/families.py; --world-every keeps a drawn world for several episodes
+    # sitl/world/families.py; --world-every keeps a drawn world for several episodes
     scenario: str = "valley"
     """a world: valley, forest, city, dynamic, a file, NAME#SEED; or family:NAME, mix:A,B"""
     episodes: int = 5000
@@ -181,7 +181,7 @@ class TrainConfig:
         """``check``, then what costs more: the device, the scenario or env id."""
         import torch
 
-        from sitl.families import check_scenario  # ScenarioError naming the scenario
+        from sitl.world.families import check_scenario  # ScenarioError naming the scenario
 
         self.check()  # the fields may have been changed since construction
         try:
@@ -211,7 +211,7 @@ class EvalConfig:
     """actor file or run directory (its actor.pt), or scripted; None: the shipped policy"""
     scenario: str = "valley"
     """a world, or family:NAME with --worlds"""
-    # world seeds never drawn in training (sitl/families.py)
+    # world seeds never drawn in training (sitl/world/families.py)
     worlds: Annotated[int | None, tyro.conf.arg(metavar="N")] = None
     """with --scenario family:NAME: fly N held-out worlds of the family, episodes spread"""
     validation: bool = False

@@ -107,7 +107,7 @@ def _methods(path: Path, data: dict) -> list[tuple[str, str]]:
 def _tasks(path: Path, data: dict) -> list[tuple[str, str]]:
     """(kind, name) pairs: ("scenario", "valley") or ("env", "BipedalWalkerHardcore-v3")."""
     from policy.training.gym_task import check_env_id
-    from sitl.families import check_scenario
+    from sitl.world.families import check_scenario
 
     tasks: list[tuple[str, str]] = []
     for kind in ("scenario", "env"):

@@ -1,7 +1,7 @@
 """When a control step of the simulator node runs and which command answers it: the
 node's clocks (:class:`StackClock`), wall-clock pacing (:class:`Pacer`), the lockstep
 and real-time command gate (:class:`CommandGate`) and what the node keeps after lockstep
-broke (:class:`Rejoin`). The rules are in ``sitl/node.py``'s docstring ("Clocks")."""
+broke (:class:`Rejoin`). The rules are in ``sitl/node/node.py``'s docstring ("Clocks")."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 from bus import messages as m
-from sitl.commander import Commander, State
+from sitl.commander.machine import Commander, State
 
 log = logging.getLogger("skyloop.sim")
 POLL_S = 0.01  # s, how often requests are served while the node waits

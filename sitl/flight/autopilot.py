@@ -18,7 +18,7 @@ Cascade (outer loops here in Python, inner loops in JSBSim):
    velocity loop, so the vehicle hovers in place instead of drifting with the estimate.
 4. Tilt vector + yaw rate -> attitude setpoint -> body-rate references -> the F450 rate
    PIDs and mixer: these run inside JSBSim at every physics step
-   (``sitl/fcs/f450_attitude_rate.xml``; see :mod:`sitl.flight_model`).
+   (``sitl/flight/fcs/f450_attitude_rate.xml``; see :mod:`sitl.flight.flight_model`).
 
 Outer-loop rate (``VehicleConfig.outer_hz``; it must divide the 0.1 s control period
 into whole ticks: 10, 20, 50 or 100 Hz).  Measured on this 2-core machine, rates

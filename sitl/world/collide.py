@@ -4,7 +4,7 @@ Terrain: the sphere collides when the terrain under its centre reaches its lowes
 point, or when any triangle of the cells under it is closer than the radius (exact
 point-triangle distance, Ericson's closest-point test). A quick reject against the
 highest vertex under the sphere skips the exact part in open air.
-Solids: see ``sitl.obstacles`` (exact for boxes, face-plane test otherwise).
+Solids: see ``sitl.world.obstacles`` (exact for boxes, face-plane test otherwise).
 Aircraft: yawed boxes at their pose at time t, exact.
 """
 
@@ -15,14 +15,14 @@ import math
 import numba as nb
 import numpy as np
 
-from sitl.aircraft import aircraft_pose
+from sitl.world.aircraft import aircraft_pose
 
 _JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @nb.njit(**_JIT)
 def height_at(h: np.ndarray, x0: float, y0: float, res: float, x: float, y: float) -> float:
-    """Mesh height at (x, y), clamped to the grid (see ``sitl.terrain``)."""
+    """Mesh height at (x, y), clamped to the grid (see ``sitl.world.terrain``)."""
     nx, ny = h.shape[1] - 1, h.shape[0] - 1
     fx = min(max((x - x0) / res, 0.0), float(nx))
     fy = min(max((y - y0) / res, 0.0), float(ny))

@@ -12,7 +12,7 @@ Ranges: surfaces closer than ``min_range`` (0.9 m) or farther than ``max_range``
 Simplification: the whole scan is taken at the single time ``t`` (a real VLP-16
 sweeps over 0.1 s); moving aircraft appear where they are at ``t``.
 
-Culling first (``sitl.raycull``): for short ranges (the 4.5 m sensing radius) a
+Culling first (``sitl.lidar.raycull``): for short ranges (the 4.5 m sensing radius) a
 per-column horizon built from 0.5 m terrain tiles near the sensor selects the rays that
 can hit anything and where their march may start; in open air nothing is cast. For
 long ranges only rays that climb away from everything are skipped.
@@ -22,7 +22,7 @@ core, this machine: full range ~6.2 M rays/s Embree vs ~5 M numba; 4.5 m range
 ~34-42 M rays/s numba vs ~26 M Embree, i.e. ~0.7 ms vs ~1.1 ms a scan):
 - ``"embree"``: static geometry (terrain + obstacles) as one triangle mesh in Embree
   (embreex ``EmbreeScene.run``, distances only) on the culled rays;
-- ``"numba"``: the heightfield marcher + splatted convex solids (``sitl.raycast``) on
+- ``"numba"``: the heightfield marcher + splatted convex solids (``sitl.lidar.raycast``) on
   the same triangles: both engines agree to float precision (tested);
 - ``"auto"`` (default): Embree above ``AUTO_EMBREE_ABOVE`` (20 m) max range, numba at
   or below it. Aircraft are always splatted analytically (numba) and merged by
@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl import raycast, raycull
-from sitl.aircraft import box_planes
-from sitl.world import World
+from sitl.lidar import raycast, raycull
+from sitl.world.aircraft import box_planes
+from sitl.world.world import World
 
 TILE = 8  # cells per marcher tile (2 m at 0.25 m resolution)
 HORIZON_TILE = 2  # cells per horizon-cull tile (0.5 m)

@@ -1,6 +1,6 @@
 """The commander's vocabulary: states, parameters, verdicts, samples, setpoints, events.
 
-Kept apart from :mod:`sitl.commander` (the state machine) so each stays small; import
+Kept apart from :mod:`sitl.commander.machine` (the state machine) so each stays small; import
 them from either module. Pure: no I/O.
 """
 

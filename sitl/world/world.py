@@ -17,17 +17,17 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from sitl import collide
-from sitl.aircraft import Fleet
-from sitl.obstacles import (
+from sitl.world import collide
+from sitl.world.aircraft import Fleet
+from sitl.world.obstacles import (
     ConvexSolid,
     generate_buildings,
     generate_trees,
     merge_meshes,
     pack_solids,
 )
-from sitl.scenario import Scenario, ScenarioError, load_scenario, scenario_names
-from sitl.terrain import Heightfield, generate_terrain
+from sitl.world.scenario import Scenario, ScenarioError, load_scenario, scenario_names
+from sitl.world.terrain import Heightfield, generate_terrain
 
 __all__ = [
     "UAV_BODY_RADIUS",

@@ -1,4 +1,4 @@
-"""Scenarios: typed dataclasses loaded from TOML data files in ``sitl/scenarios/``.
+"""Scenarios: typed dataclasses loaded from TOML data files in ``sitl/world/scenarios/``.
 
 A scenario file describes a world by parameters, never by code: the navigable area,
 the start/goal sampling rules, the procedural terrain (hills, ridges), static
@@ -148,12 +148,12 @@ class Scenario:
 
 
 def scenario_names() -> list[str]:
-    """Names of the scenario files shipped in ``sitl/scenarios/`` (sorted)."""
+    """Names of the scenario files shipped in ``sitl/world/scenarios/`` (sorted)."""
     return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
 
 
 def load_scenario(name_or_path: str | Path) -> Scenario:
-    """Load a scenario by name (``sitl/scenarios/<name>.toml``) or by file path;
+    """Load a scenario by name (``sitl/world/scenarios/<name>.toml``) or by file path;
     ``NAME#SEED`` is world ``SEED`` of the family ``NAME`` (:func:`world_variant`)."""
     text = str(name_or_path)
     if not isinstance(name_or_path, Path) and "#" in text:

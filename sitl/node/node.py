@@ -1,10 +1,10 @@
 """The simulator node (``skyloop sim``): the vehicle -- :class:`~sitl.episode.EpisodeSim`,
 its commander and failsafes -- on the bus.
 
-**The commander lives here** (issue 5): :class:`~sitl.commander.Commander` is stepped
+**The commander lives here** (issue 5): :class:`~sitl.commander.machine.Commander` is stepped
 every control step with the vehicle's state and decides what the autopilot flies, so its
 failsafes act whatever happens to the bridge or the policy process. Requests (arm,
-takeoff, modes, ...), the status topic and parameters: :mod:`sitl.vehicle_service`.
+takeoff, modes, ...), the status topic and parameters: :mod:`sitl.node.vehicle_service`.
 
 **Phases.** At start the vehicle stands on the ground, disarmed, at episode 0's start
 point (``--seed``); the node runs wall-clock-paced control steps (only ``status`` is
@@ -16,7 +16,7 @@ the commander is in OFFBOARD before go, the node waits (nothing answers steps ye
 * Seeded episodes (default): episode ``i`` is reset from
   ``numpy.random.default_rng(seed + i)`` exactly as ``UavNavEnv.reset(seed=seed + i)``
   does and the vehicle is placed airborne at its start (as in the env); the commander
-  is placed with it (:meth:`~sitl.commander.Commander.place`: home there, collision latch
+  is placed with it (:meth:`~sitl.commander.machine.Commander.place`: home there, collision latch
   cleared) and continues in OFFBOARD if it flew OFFBOARD in the previous episode's last
   step, else in HOLD. An episode that has flown OFFBOARD and leaves it (a failsafe such
   as setpoint loss, a ground station's mode change), or whose lockstep command for a step
@@ -54,9 +54,9 @@ episode steps over the run (integer nanoseconds, exact); the commander's own clo
 counts every control step flown (ground phase included) and never goes backwards.
 
 **Commands** (``cmd_vel``, ``VelocitySetpoint``, from the bridge): every one is offered
-to the commander (:meth:`~sitl.commander.Commander.setpoint`; OFFBOARD needs a recent
+to the commander (:meth:`~sitl.commander.machine.Commander.setpoint`; OFFBOARD needs a recent
 one; an OFFBOARD request waits briefly for one on its way, see
-:mod:`sitl.vehicle_service`). In OFFBOARD a body-frame yaw-rate setpoint (the policy's
+:mod:`sitl.node.vehicle_service`). In OFFBOARD a body-frame yaw-rate setpoint (the policy's
 action, ``bus.messages.is_action``) is flown with :meth:`EpisodeSim.step_body` (as the
 env: rotated by the estimated yaw); otherwise the node flies the commander's world ENU output (HOLD,
 LAND, RTL, TAKEOFF; motors stopped while disarmed or idle on the ground). Outside
@@ -78,13 +78,13 @@ back) is measured in both.
 
 **Parts** (composed, no inheritance): :class:`SimNode` builds them and runs the node
 (warm-up, readiness, the ground phase, the episodes, the summary).
-:class:`~sitl.node_pacing.StackClock` (stamps and the commander's clock),
-:class:`~sitl.node_pacing.Pacer` (wall-clock pacing), :class:`~sitl.node_pacing.CommandGate`
+:class:`~sitl.node.pacing.StackClock` (stamps and the commander's clock),
+:class:`~sitl.node.pacing.Pacer` (wall-clock pacing), :class:`~sitl.node.pacing.CommandGate`
 (which command answers which step, the lockstep timeout, stale/late/missed counts),
-:class:`~sitl.node_pacing.Rejoin` (what is kept after lockstep broke, to join the policy
-again), :class:`~sitl.node_step.GoalIntake` (goals from the bus),
-:class:`~sitl.node_step.ControlStep` (one control period) and
-:class:`~sitl.node_episodes.EpisodeRunner` (the phases above). The caller's
+:class:`~sitl.node.pacing.Rejoin` (what is kept after lockstep broke, to join the policy
+again), :class:`~sitl.node.step.GoalIntake` (goals from the bus),
+:class:`~sitl.node.step.ControlStep` (one control period) and
+:class:`~sitl.node.episodes.EpisodeRunner` (the phases above). The caller's
 :class:`SimNodeConfig` is never changed: the node runs on
 :meth:`SimNodeConfig.resolved`'s copy.
 """
@@ -101,13 +101,13 @@ import numpy as np
 
 from bus import keys
 from bus.node import Bus, inbox_drops
-from sitl.commander import Commander
+from sitl.commander.machine import Commander
 from sitl.episode import EpisodeSim
-from sitl.node_episodes import EpisodeRunner
-from sitl.node_pacing import CommandGate, Pacer, Rejoin, StackClock
-from sitl.node_step import ControlStep, GoalIntake, SimNodeConfig
-from sitl.node_util import quat_from_matrix, quat_from_yaw
-from sitl.vehicle_service import VehicleService
+from sitl.node.episodes import EpisodeRunner
+from sitl.node.pacing import CommandGate, Pacer, Rejoin, StackClock
+from sitl.node.step import ControlStep, GoalIntake, SimNodeConfig
+from sitl.node.util import quat_from_matrix, quat_from_yaw
+from sitl.node.vehicle_service import VehicleService
 
 __all__ = ["EPISODE_LINE", "READY_LINE", "SUMMARY_LINE", "SimNode",
            "SimNodeConfig", "quat_from_matrix", "quat_from_yaw"]
@@ -146,7 +146,7 @@ class SimNode:
                 raise ValueError(f"bad parameter {name}={value!r} (see bus/params.py)")
         if c.free_flight and not self.sim.source.fixed:
             # a family in free flight: one world of it never drawn in training
-            from sitl.families import eval_worlds
+            from sitl.world.families import eval_worlds
 
             self.sim.use_world(eval_worlds(self.sim.source.families[0], 1)[0])
             log.info("free flight in %s (a held-out world of the family)",

@@ -1,6 +1,6 @@
 """The commander on the bus: requests, status, parameters (the sim's side of issue 5).
 
-:class:`VehicleService` wraps the :class:`~sitl.commander.Commander` that the simulator
+:class:`VehicleService` wraps the :class:`~sitl.commander.machine.Commander` that the simulator
 node steps. Nothing here runs in Zenoh's threads and nothing blocks: the node calls
 :meth:`VehicleService.serve` whenever it has a moment (every control step, and every
 few milliseconds while it waits), so requests are answered within a step.
@@ -41,7 +41,7 @@ from typing import Any
 from bus import keys, params
 from bus import messages as m
 from bus.node import Bus
-from sitl.commander import Commander, Verdict
+from sitl.commander.machine import Commander, Verdict
 
 log = logging.getLogger("skyloop.sim")
 SETPOINT_GRACE_S = 0.05  # s an OFFBOARD request waits for a setpoint still on its way

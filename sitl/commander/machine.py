@@ -35,7 +35,7 @@ States (PX4 semantics; the bridge reports them as PX4 modes, see
   themselves (as PX4): the client asks for OFFBOARD again, which ends the failsafe.
 * Setpoints are always recorded (so one can be offered before the switch) but flown
   only in OFFBOARD: body-frame ones rotated by the current yaw, heading targets turned
-  into yaw rates (:func:`sitl.commander_guidance.offboard_setpoint`).
+  into yaw rates (:func:`sitl.commander.guidance.offboard_setpoint`).
 * Takeoff climbs to ``altitude`` (default ``takeoff_altitude``) above the height where
   the climb starts (the next :meth:`step`'s if none came before), at
   ``min(takeoff_speed, takeoff_gain * error)``, then holds. LAND descends at
@@ -69,8 +69,8 @@ from __future__ import annotations
 
 import math
 
-from sitl.commander_guidance import detect_landing, offboard_setpoint, rtl_setpoint
-from sitl.commander_types import (
+from sitl.commander.guidance import detect_landing, offboard_setpoint, rtl_setpoint
+from sitl.commander.types import (
     ACCEPTED,
     EPS,
     ZERO,

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.scenario import BuildingsConfig, TreesConfig
-from sitl.terrain import Heightfield
+from sitl.world.scenario import BuildingsConfig, TreesConfig
+from sitl.world.terrain import Heightfield
 
 
 @dataclass

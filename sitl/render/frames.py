@@ -1,6 +1,6 @@
 """Fast video frames of an episode (pure numpy): a shaded top-down map and a side panel.
 
-The env's ``render_mode="rgb_array"`` draws with this module (``sitl.render`` is the
+The env's ``render_mode="rgb_array"`` draws with this module (``sitl.render.scene`` is the
 matplotlib picture of ``skyloop render``; about 1 s a frame). :class:`FastRenderer`
 does the expensive part once per world and the rest per frame:
 
@@ -33,7 +33,7 @@ import math
 import numpy as np
 
 from bus.task import TASK
-from sitl.world import World
+from sitl.world.world import World
 
 __all__ = ["FastRenderer"]
 

@@ -1,7 +1,7 @@
 """One control period of the simulator node (:class:`ControlStep`: pace or gate, publish
 the step, take its command, step the commander, fly), the goals it takes from the bus
 (:class:`GoalIntake`) and the node's settings (:class:`SimNodeConfig`). The clocks,
-frames and rules are described in ``sitl/node.py``'s docstring."""
+frames and rules are described in ``sitl/node/node.py``'s docstring."""
 
 from __future__ import annotations
 
@@ -15,12 +15,12 @@ import numpy as np
 from bus import keys
 from bus import messages as m
 from bus.task import TASK
-from sitl.commander import Commander, State, VehicleSample
+from sitl.commander.machine import Commander, State, VehicleSample
 from sitl.episode import EpisodeConfig, EpisodeSim
-from sitl.flight_model import REST_HEIGHT
-from sitl.node_pacing import CommandGate, Pacer, StackClock
-from sitl.node_util import quat_from_matrix, quat_from_yaw
-from sitl.vehicle_service import VehicleService
+from sitl.flight.flight_model import REST_HEIGHT
+from sitl.node.pacing import CommandGate, Pacer, StackClock
+from sitl.node.util import quat_from_matrix, quat_from_yaw
+from sitl.node.vehicle_service import VehicleService
 
 log = logging.getLogger("skyloop.sim")
 TOUCHDOWN_SPEED = 1.0  # m/s, a gentler terrain contact outside OFFBOARD is a landing

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.scenario import TerrainConfig
+from sitl.world.scenario import TerrainConfig
 
 
 @dataclass

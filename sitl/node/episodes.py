@@ -1,6 +1,6 @@
 """The simulator node's episodes (:class:`EpisodeRunner`): the flight before "go", each
 episode from START to END, and the flight between episodes (waiting for a goal, or for
-the vehicle to rejoin after a broken episode). The rules are in ``sitl/node.py``'s
+the vehicle to rejoin after a broken episode). The rules are in ``sitl/node/node.py``'s
 docstring ("Phases")."""
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ import numpy as np
 from bus import keys
 from bus import messages as m
 from bus.task import TASK
-from sitl.commander import State
-from sitl.node_pacing import POLL_S, Rejoin
-from sitl.node_step import ControlStep, SimNodeConfig
-from sitl.node_util import quat_from_matrix, quat_from_yaw
+from sitl.commander.machine import State
+from sitl.node.pacing import POLL_S, Rejoin
+from sitl.node.step import ControlStep, SimNodeConfig
+from sitl.node.util import quat_from_matrix, quat_from_yaw
 
 log = logging.getLogger("skyloop.sim")
 
@@ -141,7 +141,7 @@ class EpisodeRunner:
         self.commander.place(self.clock.now(), airborne=False)
 
     def ground_phase(self, go: Callable[[], Any] | None) -> None:
-        """Until "go" (see ``sitl/node.py``): on the ground, serving requests; while the
+        """Until "go" (see ``sitl/node/node.py``): on the ground, serving requests; while the
         commander is in OFFBOARD before go, nothing answers steps yet: only requests and
         the status are served."""
         started = threading.Event()

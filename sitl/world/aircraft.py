@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from sitl.scenario import AircraftConfig
+from sitl.world.scenario import AircraftConfig
 
 
 @dataclass

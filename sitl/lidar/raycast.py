@@ -6,14 +6,14 @@ and ``o`` is the world origin. Distances are written into ``dist`` (initialised 
 maximum range by the caller) where a surface is closer.
 
 - Terrain: a heightfield marcher (Amanatides-Woo DDA over cells, each rejected by its
-  maximum height or intersected exactly with its two triangles, see ``sitl.terrain``)
+  maximum height or intersected exactly with its two triangles, see ``sitl.world.terrain``)
   after clipping each ray to the grid and to the highest terrain point; long rays
   first march 2 m tiles holding their maximum height and descend only where needed.
 - Convex solids (static obstacles, aircraft): "splatted" onto the ray grid. Each
   solid's bounding sphere covers a small azimuth/elevation window of the grid; only
   rays in the window are intersected with the solid's half-spaces (Cyrus-Beck).
 
-Culling (which rays need casting at all) lives in ``sitl.raycull``.
+Culling (which rays need casting at all) lives in ``sitl.lidar.raycull``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The commander's guidance: what OFFBOARD and RTL fly, and the land detector.
 
-Pure functions of the commander's parameters (:class:`~sitl.commander_types.CommanderConfig`)
-and the vehicle's sample, kept apart from the state machine in :mod:`sitl.commander`
+Pure functions of the commander's parameters (:class:`~sitl.commander.types.CommanderConfig`)
+and the vehicle's sample, kept apart from the state machine in :mod:`sitl.commander.machine`
 (which owns every transition and event). No I/O, no clock.
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 
-from sitl.commander_types import EPS, CommanderConfig, Setpoint, VehicleSample
+from sitl.commander.types import EPS, CommanderConfig, Setpoint, VehicleSample
 
 
 def detect_landing(config: CommanderConfig, low_since: float | None, landed: bool,
@@ -47,7 +47,7 @@ def rtl_setpoint(config: CommanderConfig, phase: str, rtl_z: float,
                  home: tuple[float, float], sample: VehicleSample,
                  landed: bool) -> tuple[str, Setpoint | None]:
     """One RTL step: climb to ``rtl_z``, fly home holding it, descend (see
-    :mod:`sitl.commander`). Returns the phase after this step (``"climb"``,
+    :mod:`sitl.commander.machine`). Returns the phase after this step (``"climb"``,
     ``"return"``, ``"descend"``) and the setpoint; None once descended and ``landed``
     (the commander then disarms)."""
     c = config

@@ -4,11 +4,11 @@ What ``--scenario`` (and ``EpisodeConfig.scenario``) takes:
 
 - ``NAME`` (``valley``, a file path, ``city#123``): one fixed world, as always;
 - ``family:NAME``: a fresh world of family ``NAME`` (the shipped scenario as template:
-  :func:`sitl.scenario.world_variant`) every ``world_every`` episodes;
+  :func:`sitl.world.scenario.world_variant`) every ``world_every`` episodes;
 - ``mix:A,B,C`` or ``mix:A=2,B=1``: the family drawn per new world with these weights
   (equal when none are given).
 
-Worlds are named ``<family>#<seed>``, a name :func:`sitl.scenario.load_scenario` reads,
+Worlds are named ``<family>#<seed>``, a name :func:`sitl.world.scenario.load_scenario` reads,
 so a log's episode (its START names the world) can be rebuilt anywhere. World seeds
 come from disjoint ranges, so that evaluation worlds are never trained on:
 
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.scenario import ScenarioError, scenario_names
+from sitl.world.scenario import ScenarioError, scenario_names
 
 TRAIN_SEEDS = (0, 2**31)
 VALIDATION_SEED0 = 2**31
@@ -87,7 +87,7 @@ class WorldSource:
 def check_scenario(spec: str) -> WorldSource:
     """The world source of ``spec``, its scenario files loaded once to check them
     (ScenarioError naming the file and field, or the spec)."""
-    from sitl.scenario import load_scenario
+    from sitl.world.scenario import load_scenario
 
     source = WorldSource.parse(spec)
     for name in source.families or (spec,):

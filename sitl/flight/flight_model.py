@@ -6,7 +6,7 @@ Implements the physics side of skyloop's vehicle (issue 2, section 2):
   gear, propulsion (four DJI E305 motors with DJI 9450 props), effectors (ESC actuators)
   and aerodynamics files, loaded unchanged.  JSBSim integrates the rigid body, the motor
   and propeller dynamics; there is no hand-written integrator here.
-- Inner loops: ``sitl/fcs/f450_attitude_rate.xml`` replaces the F450's
+- Inner loops: ``sitl/flight/fcs/f450_attitude_rate.xml`` replaces the F450's
   ``FlightControl.xml``.  It keeps that file's body-rate PID gains and quad-X mixer, adds
   a PX4-style attitude P loop fed by a tilt vector, and drops the 0.75 rad/s cap that
   FlightControl.xml puts on rate references (yaw rates up to 2 rad/s must be reachable).
@@ -18,7 +18,7 @@ Implements the physics side of skyloop's vehicle (issue 2, section 2):
   ~0.95, body drag growing with speed), i.e. the rigid-body relation holds once the
   attitude loop tracks the tilt exactly.
 - The F450's ``Sensor*.xml`` systems (JSBSim's own sensor models) are not loaded; skyloop
-  models its sensors in :mod:`sitl.sensors`.  Without them, and with the aircraft file
+  models its sensors in :mod:`sitl.flight.sensors`.  Without them, and with the aircraft file
   declared at the version this JSBSim expects, loading prints nothing (the stock F450
   prints "INCOMPATIBLE CFG FILE" and "Failed to tie property" lines); the debug level is
   also set to 0 before the executive is built, which silences JSBSim's banner.

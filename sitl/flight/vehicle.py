@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bus.params import default
-from sitl.autopilot import AutopilotConfig, VelocityAutopilot
-from sitl.estimator import Estimator, EstimatorConfig
-from sitl.flight_model import FlightModel, enu_rpy, rotation_flu_to_enu
-from sitl.sensors import SensorConfig, Sensors
+from sitl.flight.autopilot import AutopilotConfig, VelocityAutopilot
+from sitl.flight.estimator import Estimator, EstimatorConfig
+from sitl.flight.flight_model import FlightModel, enu_rpy, rotation_flu_to_enu
+from sitl.flight.sensors import SensorConfig, Sensors
 
 
 @dataclass
@@ -141,7 +141,7 @@ class Vehicle:
         self._truth = None
 
     def set_ground(self, elevation: float) -> None:
-        """Move the flight model's flat ground (see :mod:`sitl.flight_model`)."""
+        """Move the flight model's flat ground (see :mod:`sitl.flight.flight_model`)."""
         self.fm.set_ground(elevation)
 
     @property
