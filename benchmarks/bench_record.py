@@ -27,7 +27,7 @@ was sent but neither written nor counted (the goal is zero too).
   (TF, markers, path: a few percent of its size), which are left out here.
   ``log_points_per_scan``: mean returns of those scans; ``log_zstd_ratio``: zstd size /
   uncompressed size; ``log_write_ms_per_scan_<compression>``: CPU time of this process
-  per step to write them (median of 3 passes). zstd is written at ``bus.log.ZSTD_LEVEL``
+  per step to write them (median of 3 passes). zstd is written at ``bus.log.writer.ZSTD_LEVEL``
   (``log_zstd_level``); ``log_*_zstd_level3`` are the same at zstandard's default level 3
   (the level before 2026-12-03), measured in the same run.
 """
@@ -45,11 +45,11 @@ from pathlib import Path
 import numpy as np
 
 from bus import keys
-from bus import log as log_module
 from bus import messages as m
-from bus.log import EpisodeLogWriter
+from bus.log import writer as log_module
+from bus.log.record import Recorder
+from bus.log.writer import EpisodeLogWriter
 from bus.node import Bus
-from bus.record import Recorder
 from bus.session import SessionConfig, open_session
 from skyloop.launcher import free_port
 

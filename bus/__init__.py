@@ -5,6 +5,6 @@
   ``bus/msg/*.msg``), the CDR codec, message constructors and extractors.
 - :mod:`bus.session`: session configuration, hub discovery, the Python router.
 - :mod:`bus.node`: :class:`bus.node.Bus` (typed publishers/subscribers on a session).
-- :mod:`bus.log`: the MCAP episode log writer; :mod:`bus.log_reader`: the reader.
-- :mod:`bus.record`: the recorder (``skyloop record``).
+- :mod:`bus.log.writer`: the MCAP episode log writer; :mod:`bus.log.reader`: the reader.
+- :mod:`bus.log.record`: the recorder (``skyloop record``).
 """

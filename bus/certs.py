@@ -1,6 +1,6 @@
 """A certificate authority, one certificate per node, and the Zenoh configuration files
 that make the bus let no one in (:func:`make_certs`; the ``skyloop certs`` command,
-``skyloop.tool_cli``).
+``skyloop.cli.tools``).
 
 The bus of a stack that leaves loopback (docker, several hosts) runs through a router
 (``skyloop up --router``, ``docker/compose.yaml``) on a ``tls/`` endpoint with mutual

@@ -3,7 +3,7 @@
 Zenoh counts the messages its access control drops only when built with its ``stats``
 feature, which the eclipse-zenoh wheel is not (``bus/certs.py``). What the wheel does
 have is Zenoh's log: at TRACE, the target :data:`ACL_TARGET` writes a line for every
-decision. The router (a Python session, ``skyloop.tool_cli.run_router``) therefore
+decision. The router (a Python session, ``skyloop.cli.tools.run_router``) therefore
 turns that target on (:func:`merged_filter`, the user's ``RUST_LOG`` kept), reads its
 own log (:class:`StdoutTap`: the wheel's log goes to fd 1, ``tracing``'s default
 writer, not to stderr) and counts the refusals (:class:`Denials`); every line the user's

@@ -1,7 +1,7 @@
 """The vehicle's parameters: one table that the MAVLink side and the nodes share.
 
 Ground stations read and set these through the MAVLink parameter protocol
-(``mavlink_bridge.params``); the nodes that act on them (``sim``: commander and
+(``mavlink_bridge.gcs.params``); the nodes that act on them (``sim``: commander and
 autopilot; ``perception``: the icosahedron radius) apply them when they change. Names
 follow PX4 where PX4 has the parameter (``COM_OF_LOSS_T``, ``MPC_XY_VEL_MAX``, ...) and
 use the ``SKY_`` prefix where it does not. Every name fits MAVLink's 16-character

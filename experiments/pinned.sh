@@ -48,6 +48,12 @@ start)
         mkdir -p "$wt/$out"
         cp -rn "$out/." "$wt/$out/"  # never overwrites the worktree's newer state
     fi
+    # The checkpoints are git-ignored (experiments/.gitignore), and a machine that keeps a
+    # checkout's untracked files across sessions but not its ignored ones (ours) would
+    # lose them: un-ignore them in the worktree only (collect never copies them).
+    mkdir -p "$wt/$out"
+    printf '# worktree only: keep checkpoints visible to git (see pinned.sh)\n!checkpoint.pt\n' \
+        >"$wt/$out/.gitignore"
     log=$(dirname "$main")/grid-$(basename "$out").log
     (cd "$wt" && setsid nohup nice -n 19 .venv/bin/python -m skyloop experiment run \
         "$grid" --out "$out" --max-concurrent "$conc" >>"$log" 2>&1 </dev/null &)

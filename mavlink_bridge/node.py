@@ -23,11 +23,11 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
   ``time_boot_ms`` 0 means "not stamped" (MAVProxy's ``velocity``): each such setpoint
   is forwarded, as PX4 takes every setpoint as a fresh one, so an unstamped stream
   keeps OFFBOARD alive.
-* **Parameters**: the link's parameter table (:mod:`mavlink_bridge.params`, persisted per
+* **Parameters**: the link's parameter table (:mod:`mavlink_bridge.gcs.params`, persisted per
   vehicle; ``param_overrides`` from ``--param`` win for this run, not persisted) is the
   one ground stations read and set. Every accepted PARAM_SET goes out on the bus
   (``skyloop/<vehicle>/params``, ``Parameter``), and every value somebody chose (the
-  file's, the overrides: :meth:`~mavlink_bridge.params.ParamServer.explicit`) does
+  file's, the overrides: :meth:`~mavlink_bridge.gcs.params.ParamServer.explicit`) does
   whenever the sim appears (first status, or a status whose clock went back: a
   restarted sim), so the sim (commander, autopilot) and perception (``SKY_ICO_RADIUS``)
   fly with the values a ground station set; defaults nobody touched are not sent, so a
@@ -36,7 +36,7 @@ COMMAND_LONG for a :class:`CommanderProxy`, and forwards setpoints.
   newest one when the loop runs: odometry comes every control step (hundreds a second in
   lockstep), telemetry goes out at 10 Hz, so an odometry message wakes the loop only when
   it has not run for ``ODOM_WAKE_S`` (20 ms; in lockstep each step's setpoint wakes it).
-* **Goals** (:mod:`mavlink_bridge.goals`): missions, DO_REPOSITION and
+* **Goals** (:mod:`mavlink_bridge.gcs.goals`): missions, DO_REPOSITION and
   SET_POSITION_TARGET_GLOBAL_INT become PoseStamped goals on ``goal``; progress
   (MISSION_CURRENT, MISSION_ITEM_REACHED) follows the sim's ``episode`` events.
 * **Overload**: the sim's ``status`` and ``episode`` messages wait for the loop in a
@@ -72,7 +72,7 @@ from typing import Any
 from bus import keys
 from bus import messages as m
 from bus.node import Bus
-from mavlink_bridge.goals import GoalService
+from mavlink_bridge.gcs.goals import GoalService
 from mavlink_bridge.interfaces import VehicleTelemetry, VelocityCommand
 from mavlink_bridge.vehicle_link import VehicleLink, VehicleLinkConfig
 
@@ -193,7 +193,7 @@ class BridgeNode:
         self._odom_taken: Any = None  # ... the loop has handled
         self._spun = -math.inf  # monotonic time the loop last handled input
         bus.subscribe(keys.ODOM, vehicle, self._offer_odom)
-        # Goals from the ground station (mavlink_bridge.goals) -> the goal topic.
+        # Goals from the ground station (mavlink_bridge.gcs.goals) -> the goal topic.
         goal_pub = bus.publisher(keys.GOAL, vehicle)
         self.goals = GoalService(self.link, lambda p: goal_pub.put(m.pose_stamped(p, 0.0)))
         self.goals.install()

@@ -32,7 +32,7 @@ links and the offboard client), through :class:`LinkSecurity` handed to
 
 Command-line glue for the nodes: :func:`security_from_args` turns their flags
 (``--signing-key-file``, ``--allow-sysid N`` repeatable, ``--expose``:
-``skyloop.stack_settings.SecurityFlags``; the key may also come from the environment
+``skyloop.cli.stack_settings.SecurityFlags``; the key may also come from the environment
 variable ``SKYLOOP_MAVLINK_KEY``) into a :class:`LinkSecurity`. A key
 is 64 hex digits (the 32 bytes) or a passphrase, hashed with SHA-256 as MAVProxy's
 ``signing setup`` does, so the same passphrase works in MAVProxy.
@@ -271,7 +271,7 @@ def load_key(path: Path | None, env: Mapping[str, str] | None = None) -> bytes |
 
 def security_from_args(args: Any, env: Mapping[str, str] | None = None) -> LinkSecurity:
     """The :class:`LinkSecurity` a node's security flags ask for (``signing_key_file``,
-    ``allow_sysid``, ``expose``: ``skyloop.stack_settings.SecurityFlags``; missing
+    ``allow_sysid``, ``expose``: ``skyloop.cli.stack_settings.SecurityFlags``; missing
     ones are off)."""
     allow = getattr(args, "allow_sysid", None)
     return LinkSecurity(secret_key=load_key(getattr(args, "signing_key_file", None), env),

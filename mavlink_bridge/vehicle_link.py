@@ -15,7 +15,7 @@ instant ``now`` (seconds on the vehicle's clock, simulated or wall): drain both 
 handle every message, then send what is due on each link (heartbeat every
 ``heartbeat_period`` and at once when the reported mode/arming/status changes;
 LOCAL_POSITION_NED + ATTITUDE every ``telemetry_period`` and the rest of the PX4-like
-telemetry set at the rates of :mod:`mavlink_bridge.rates`, from the latest
+telemetry set at the rates of :mod:`mavlink_bridge.gcs.rates`, from the latest
 :class:`VehicleTelemetry` and the commander). No threads and no clock
 reads, so a lockstep simulator calls it once per control step and gets the same
 behaviour every run; a real-time node calls it from its loop (or after ``select`` on
@@ -45,7 +45,7 @@ command handler may queue a message to follow its COMMAND_ACK
 (:meth:`VehicleLink.reply_after_ack`). COMMAND_INT is handled as COMMAND_LONG.
 
 What ground stations expect on connect (issue 5) is installed by
-:mod:`mavlink_bridge.gcs_services`: REQUEST_MESSAGE / AUTOPILOT_VERSION, parameters
+:mod:`mavlink_bridge.gcs.services`: REQUEST_MESSAGE / AUTOPILOT_VERSION, parameters
 (:attr:`VehicleLink.params`, ``on_change``), missions (:attr:`VehicleLink.missions`,
 ``on_mission``, ``mission_current``, ``item_reached``), telemetry streams and their rates
 (:attr:`VehicleLink.rates`, SET/GET_MESSAGE_INTERVAL), TIMESYNC. The geodetic origin of
@@ -62,7 +62,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from mavlink_bridge.gcs_services import GroundStationServices
+from mavlink_bridge.gcs.services import GroundStationServices
 from mavlink_bridge.interfaces import CommanderLike, VehicleTelemetry, VelocityCommand, Verdict
 from mavlink_bridge.modes import (
     BaseMode,
@@ -105,7 +105,7 @@ class VehicleLinkConfig:
     limits: SetpointLimits = field(default_factory=SetpointLimits)
     # Ground-station protocol (issue 5): the geodetic point of the local ENU origin
     # (lat deg, lon deg, alt m AMSL; PX4 SITL's default), and the parameter file
-    # ("auto": mavlink_bridge.params.default_params_file(system_id); None: memory only).
+    # ("auto": mavlink_bridge.gcs.params.default_params_file(system_id); None: memory only).
     origin: tuple[float, float, float] = (47.397742, 8.545594, 488.0)
     params_file: str | None = "auto"
     security: LinkSecurity | None = None  # signing, allow-list, --expose (both links)

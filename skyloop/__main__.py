@@ -1,5 +1,5 @@
 """``python -m skyloop`` runs the ``skyloop`` command."""
 
-from skyloop.cli import main
+from skyloop.cli.main import main
 
 raise SystemExit(main())

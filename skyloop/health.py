@@ -34,7 +34,7 @@ from typing import Annotated
 import tyro
 
 from policy.training.settings import ConfigError
-from skyloop.settings_base import Repeated, VehicleFlag, bare_flag, positive
+from skyloop.cli.settings_base import Repeated, VehicleFlag, bare_flag, positive
 
 ESTABLISHED, LISTEN = "01", "0A"
 
@@ -192,7 +192,7 @@ HELP = ("is this node up: router reachable, session connected, ports bound, read
 @dataclass(kw_only=True)
 class HealthCommand(VehicleFlag):
     """``skyloop health`` (``python -m skyloop.health``): the checks to run, generated into
-    options with tyro (``skyloop.dataclass_cli.parse``); ``--vehicle`` is the vehicle of
+    options with tyro (``skyloop.cli.dataclass_cli.parse``); ``--vehicle`` is the vehicle of
     ``--ready`` and ``--publishing``."""
 
     router: Annotated[str | None, tyro.conf.arg(
@@ -225,7 +225,7 @@ class HealthCommand(VehicleFlag):
 def parse_health(argv: Sequence[str], prog: str = "skyloop health") -> HealthCommand:
     """The checks asked for; a bare ``--router`` is ``--router ""`` (the default
     endpoint). Exits 2 with one line on a bad command line."""
-    from skyloop.dataclass_cli import parse
+    from skyloop.cli.dataclass_cli import parse
 
     return parse(HealthCommand, bare_flag(list(argv), "--router", ""), prog=prog,
                  description=HELP)

@@ -23,7 +23,7 @@ the sim runs free flight in real time (the vehicle waits on the ground, disarmed
 ground station; an episode is one goal), until stopped or ``--episodes`` goals (default:
 until stopped). ``--goals gcs``: the policy takes off and flies OFFBOARD as usual, but the
 sim runs free flight in real time with goals from the bus only (``sim --goals-from-bus``): a
-ground station's mission or reposition gives them (``mavlink_bridge.goals``), and between
+ground station's mission or reposition gives them (``mavlink_bridge.gcs.goals``), and between
 goals the policy hovers (``policy --hold``); until stopped by default. ``--param
 NAME=VALUE`` goes to the sim (``bus/params.py``). When the sim finishes, the others get
 SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period (a node that
@@ -72,9 +72,9 @@ from typing import Any
 
 from bus.node import Bus
 from bus.session import SessionConfig
+from skyloop.cli.stack_settings import UpCommand
 from skyloop.placement import Placement, plan
 from skyloop.signals import Stopped, block_until_started, stop_on_sigterm
-from skyloop.stack_settings import UpCommand
 
 # The lines the nodes print (sitl.node.node / policy.nodes.node; not imported: --help stays light);
 # the READY lines are for people reading the output: readiness comes over the bus.

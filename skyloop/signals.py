@@ -1,6 +1,6 @@
 """SIGTERM as Ctrl-C for the ``skyloop`` commands: ``docker stop`` and systemd send
 SIGTERM; raising :class:`Stopped` (a ``KeyboardInterrupt``) in the main thread runs the
-same clean-up paths as Ctrl-C, and ``skyloop.cli.main`` exits 128 + the signal (143).
+same clean-up paths as Ctrl-C, and ``skyloop.cli.main.main`` exits 128 + the signal (143).
 
 Start-up: from the first line of ``python -m skyloop`` (or the ``skyloop`` script) until
 a command installs its own handling (:func:`stop_on_sigterm`, or a node's stop event),
@@ -97,7 +97,7 @@ def quick_exit(code: int) -> None:
     """End the process now with ``code``, after flushing the log and the standard
     streams, without the interpreter's finalization (atexit handlers, joining
     non-daemon threads, tearing down modules): for a command that has closed everything
-    it opened (``skyloop.cli.QUICK_EXIT``). Nor can a subscriber left declared by
+    it opened (``skyloop.cli.main.QUICK_EXIT``). Nor can a subscriber left declared by
     mistake (zenoh-python runs them on non-daemon threads) keep the process alive."""
     import logging
 

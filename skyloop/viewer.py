@@ -129,7 +129,7 @@ def range_colors(points: np.ndarray, max_range: float = 30.0) -> np.ndarray:
 
 
 def rgba8(colours: np.ndarray) -> np.ndarray:
-    """Float RGB(A) in [0, 1] (``bus.ros_view``'s colours) -> uint8 for Rerun."""
+    """Float RGB(A) in [0, 1] (``bus.ros.view``'s colours) -> uint8 for Rerun."""
     return np.round(np.clip(np.asarray(colours, float), 0.0, 1.0) * 255).astype(np.uint8)
 
 
@@ -148,8 +148,8 @@ class RunView:
     def __init__(self, rec: Any, *, scan_every: int = 5) -> None:
         import rerun as rr
 
-        from bus.ros_scene import SitlScene
-        from bus.ros_view import fan_triangles
+        from bus.ros.scene import SitlScene
+        from bus.ros.view import fan_triangles
         from policy.algorithms.rewards import RewardConfig
 
         self.rr, self.rec, self.scan_every = rr, rec, max(1, int(scan_every))
@@ -213,9 +213,9 @@ class RunView:
             self.scene.world(source.template())
 
     def _world(self, scenario: str) -> None:
-        """The static world of ``scenario`` (``bus.ros_scene.SitlScene``: the terrain
-        decimated, the solids by kind) in ``bus.ros_view``'s colours."""
-        from bus import ros_view
+        """The static world of ``scenario`` (``bus.ros.scene.SitlScene``: the terrain
+        decimated, the solids by kind) in ``bus.ros.view``'s colours."""
+        from bus.ros import view as ros_view
 
         rr = self.rr
         geo = self.scene.world(scenario)
@@ -322,8 +322,8 @@ class RunView:
         self._scan_step = self.step
 
     def _observation(self, msg: Any) -> None:
-        from bus import ros_view
         from bus.messages import observation_scaling
+        from bus.ros import view as ros_view
         from perception.observation import config_from_scaling, goal_terms
         from policy.algorithms.rewards import base_reward
 
@@ -387,7 +387,7 @@ def log_messages(path: str | Path, vehicle: str | None = None) -> Iterable[tuple
     """The decodable messages of a log (an .mcap file or a run directory, split runs
     file by file) that a view draws, as (topic name, message). Checks the files first:
     ValueError naming the path if there is no log there."""
-    from bus.log_reader import EpisodeLogReader, LogReadError, log_files
+    from bus.log.reader import EpisodeLogReader, LogReadError, log_files
 
     p = Path(path)
     if not p.exists():

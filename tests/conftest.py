@@ -1,7 +1,7 @@
 """Suite-wide settings.
 
 Hermetic state: the bridge persists ground-station parameter changes under
-``$XDG_STATE_HOME/skyloop`` (``mavlink_bridge.params``). The suite points that at a
+``$XDG_STATE_HOME/skyloop`` (``mavlink_bridge.gcs.params``). The suite points that at a
 temporary directory, for itself and every process it starts, so no test reads a user's
 saved parameters or writes to the home directory.
 

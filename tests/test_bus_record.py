@@ -1,4 +1,4 @@
-"""bus.record over real Zenoh on loopback: a fake run of every topic type published from
+"""bus.log.record over real Zenoh on loopback: a fake run of every topic type published from
 one session is recorded by another into MCAP and read back with matching counts; bad
 payloads and a full queue are counted; run_record and ``skyloop record``; a SIGKILLed
 recorder process loses at most the episode in progress."""
@@ -20,9 +20,9 @@ from rosbags.highlevel import AnyReader
 
 from bus import keys
 from bus import messages as m
-from bus.log import EpisodeLogWriter, read_episodes
+from bus.log.record import Recorder, run_record
+from bus.log.writer import EpisodeLogWriter, read_episodes
 from bus.node import Bus
-from bus.record import Recorder, run_record
 from bus.session import SessionConfig, open_session
 
 REPO = Path(__file__).resolve().parents[1]
@@ -207,7 +207,7 @@ def test_run_record_until_stopped(tmp_path):
 
 
 def test_main_help(capsys):
-    from skyloop.tool_cli import parse_tool
+    from skyloop.cli.tools import parse_tool
 
     with pytest.raises(SystemExit) as exc:
         parse_tool(["record", "--help"])

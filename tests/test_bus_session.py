@@ -126,7 +126,7 @@ def test_run_router_until_stopped():
     stop.set()
     thread.join(5.0)
     assert not thread.is_alive()
-    from skyloop.tool_cli import parse_tool
+    from skyloop.cli.tools import parse_tool
 
     with pytest.raises(SystemExit) as exc:  # the 'skyloop router' command
         parse_tool(["router", "--help"])

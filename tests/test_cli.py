@@ -18,7 +18,7 @@ def skyloop(*args: str, timeout: float = 300) -> subprocess.CompletedProcess:
 def test_one_version_for_the_command_and_the_vehicle():
     from importlib.metadata import version
 
-    from mavlink_bridge.autopilot_version import autopilot_version
+    from mavlink_bridge.gcs.autopilot_version import autopilot_version
 
     out = skyloop("--version")
     assert out.returncode == 0 and out.stdout.strip() == f"skyloop {version('skyloop')}"
@@ -75,8 +75,8 @@ def test_mavlink_nodes_refuse_to_expose_without_the_flag():
 def test_security_flags_reach_bridge_and_policy(tmp_path):
     """``skyloop up`` hands the same key and allow-list to the bridge and the policy, and
     each builds a signing endpoint from them (a bad key file is a clear error)."""
+    from skyloop.cli.stack import bridge_link_config, parse_node, policy_client_config
     from skyloop.launcher import _node_args
-    from skyloop.stack_cli import bridge_link_config, parse_node, policy_client_config
 
     key = tmp_path / "key"
     key.write_text("correct horse battery staple\n")

@@ -1,4 +1,4 @@
-"""Command lines generated from config dataclasses (tyro, ``skyloop.dataclass_cli``):
+"""Command lines generated from config dataclasses (tyro, ``skyloop.cli.dataclass_cli``):
 ``skyloop train`` from ``policy.training.train.TrainConfig``, ``skyloop eval`` from
 ``policy.training.evaluate.EvalConfig``. The defaults shown and used are the dataclass's, bad
 values are one-line errors naming the flag (exit 2) before anything starts, and a
@@ -21,8 +21,8 @@ from policy.algorithms.td3 import PRECISIONS
 from policy.training.evaluate import EvalConfig
 from policy.training.settings import ConfigError
 from policy.training.train import Algo, Precision, Reward, TrainConfig
-from skyloop.dataclass_cli import parse
-from skyloop.train_cli import TrainCommand, parse_train
+from skyloop.cli.dataclass_cli import parse
+from skyloop.cli.train import TrainCommand, parse_train
 
 HIDDEN = {"progress", "extra"}  # TrainConfig fields that are not flags
 
@@ -214,7 +214,7 @@ def test_help_piped_into_head_prints_its_lines_and_no_traceback():
 
 NO_TORCH = """
 import contextlib, io, sys
-from skyloop.cli import main
+from skyloop.cli.main import main
 with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
     try:
         main(sys.argv[1:])

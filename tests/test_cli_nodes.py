@@ -1,6 +1,6 @@
 """The stack's commands (``skyloop sim``, ``perception``, ``policy``, ``bridge``, ``up``)
-and the others of ``skyloop.tool_cli`` (``record``, ``router``, ``certs``, ``demo``, ...)
-have options generated from their settings dataclasses (``skyloop.stack_settings``,
+and the others of ``skyloop.cli.tools`` (``record``, ``router``, ``certs``, ``demo``, ...)
+have options generated from their settings dataclasses (``skyloop.cli.stack_settings``,
 tyro): every flag they had keeps its name and meaning, ``--help`` shows each default
 (the dataclass's) and the choices, and a bad value is one line naming the flag, exit 2,
 before anything starts."""
@@ -17,11 +17,11 @@ from pathlib import Path
 import pytest
 
 from bus.task import TASK
-from skyloop.stack_cli import COMMANDS as NODES
-from skyloop.stack_cli import parse_node
-from skyloop.stack_settings import SimCommand, UpCommand
-from skyloop.tool_cli import COMMANDS as TOOLS
-from skyloop.tool_cli import parse_tool
+from skyloop.cli.stack import COMMANDS as NODES
+from skyloop.cli.stack import parse_node
+from skyloop.cli.stack_settings import SimCommand, UpCommand
+from skyloop.cli.tools import COMMANDS as TOOLS
+from skyloop.cli.tools import parse_tool
 
 COMMANDS = {**NODES, **TOOLS}
 
@@ -514,7 +514,7 @@ def test_learner_options_come_from_its_config():
 
 def test_a_learner_command_line_gives_the_config_it_says(capsys):
     from policy.nodes.learner import LearnerConfig
-    from skyloop.learner_cli import parse_learner
+    from skyloop.cli.learner import parse_learner
 
     command = parse_learner(["--vehicles", "uav1", "uav2", "--algo", "ddpg", "--reward", "egr",
                              "--out", "runs/l", "--seed", "3", "--updates-per-step", "0.5",

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from skyloop.stack_cli import bridge_link_config, parse_node, policy_client_config
+from skyloop.cli.stack import bridge_link_config, parse_node, policy_client_config
 
 DOCKER = Path(__file__).resolve().parent.parent / "docker"
 NODES = {"sim", "perception", "policy", "bridge", "record"}
@@ -58,9 +58,9 @@ def test_compose_shape():
 
 
 def test_commands_parse():
-    from skyloop.stack_cli import COMMANDS
-    from skyloop.tool_cli import COMMANDS as TOOLS
-    from skyloop.tool_cli import parse_tool
+    from skyloop.cli.stack import COMMANDS
+    from skyloop.cli.tools import COMMANDS as TOOLS
+    from skyloop.cli.tools import parse_tool
 
     for name, cmd in node_commands().items():
         assert cmd[0] == name

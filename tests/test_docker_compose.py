@@ -47,7 +47,7 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
 
-from bus.log_reader import read_episodes  # noqa: E402
+from bus.log.reader import read_episodes  # noqa: E402
 from mavlink_bridge.modes import AutoSubMode, MainMode, decode_custom_mode  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.docker]  # make test-docker

@@ -122,7 +122,7 @@ def test_the_stack_flies_the_drawn_world_and_logs_its_name(tmp_path):
     """``skyloop up --scenario family:city``: the sim draws each episode's world as the
     env does (same seed, same world, same start), and the log's START names it, so the
     log can be rebuilt (``load_scenario(NAME#SEED)``)."""
-    from bus.log_reader import read_episodes
+    from bus.log.reader import read_episodes
 
     proc = subprocess.run(up_args("--scenario", "family:city", "--episodes", "2",
                                   "--max-steps", "15", "--policy", "scripted",

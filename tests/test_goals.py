@@ -1,4 +1,4 @@
-"""Goals from a ground station (mavlink_bridge.goals): the pure conversion and queue,
+"""Goals from a ground station (mavlink_bridge.gcs.goals): the pure conversion and queue,
 then DO_REPOSITION, SET_POSITION_TARGET_GLOBAL_INT and a mission started by DO_SET_MODE
 AUTO.MISSION from a pymavlink ground station over real UDP (tests/gcs_rig.py: a real
 Commander on a point vehicle), progress driven by real episode event messages."""
@@ -18,7 +18,7 @@ from test_mavlink_missions import item, upload
 
 from bus import messages as bm
 from mavlink_bridge import frames
-from mavlink_bridge.goals import (
+from mavlink_bridge.gcs.goals import (
     Goal,
     GoalFrame,
     GoalQueue,
@@ -26,7 +26,7 @@ from mavlink_bridge.goals import (
     goal_position,
     plan_mission,
 )
-from mavlink_bridge.missions import MissionItem, item_from_message
+from mavlink_bridge.gcs.missions import MissionItem, item_from_message
 
 ORIGIN = (47.397742, 8.545594, 488.0)
 HOME = (3.0, 4.0, 0.5)

@@ -106,7 +106,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 def test_no_import_cycle_between_project_modules():
     modules = project_modules()
     assert {"bus.node", "bus.session", "policy.algorithms.abr", "policy.algorithms.rewards",
-            "mavlink_bridge.vehicle_link", "mavlink_bridge.gcs_services",
+            "mavlink_bridge.vehicle_link", "mavlink_bridge.gcs.services",
             "policy.nodes.learner", "policy.nodes.learner_node"} <= set(modules)
     graph = import_graph(modules)
     assert sum(map(len, graph.values())) > 100  # the graph was really built

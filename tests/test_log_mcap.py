@@ -1,4 +1,4 @@
-"""bus.log: the MCAP episode log opens with the mcap reader and with rosbags; the
+"""bus.log.writer: the MCAP episode log opens with the mcap reader and with rosbags; the
 episode reader groups, reports incomplete episodes, and survives SIGKILL, truncation
 and corruption with a count of what was lost."""
 
@@ -17,15 +17,15 @@ from rosbags.rosbag2 import Reader as Rosbag2Reader
 
 from bus import keys
 from bus import messages as m
-from bus.log import (
+from bus.log.mcap_scan import CHUNK, MAGIC, records
+from bus.log.reader import log_files
+from bus.log.writer import (
     EpisodeLogReader,
     EpisodeLogWriter,
     LogReadError,
     read_episodes,
     recover_log,
 )
-from bus.log_reader import log_files
-from bus.mcap_scan import CHUNK, MAGIC, records
 
 REPO = Path(__file__).resolve().parents[1]
 PTS = np.random.default_rng(0).normal(scale=10, size=(2000, 3)).astype(np.float32)
@@ -111,11 +111,11 @@ def test_default_chunks_are_zstd_and_read_back_exactly(tmp_path):
 
 def test_zstd_chunks_are_written_at_the_log_level(tmp_path):
     """mcap's writer compresses its chunks with ``zstandard.compress`` (level 3, no
-    option); ``bus.log`` stands in for it at ``ZSTD_LEVEL`` (issue 11, "Speed")."""
+    option); ``bus.log.writer`` stands in for it at ``ZSTD_LEVEL`` (issue 11, "Speed")."""
     import mcap.writer
     import zstandard
 
-    from bus import log
+    from bus.log import writer as log
 
     assert isinstance(mcap.writer.zstandard, log._McapZstd)
     data = m.encode(m.pointcloud(PTS, 1.0)) * 20
@@ -289,7 +289,7 @@ WRITER = """
 import sys, time
 import numpy as np
 from bus import keys, messages as m
-from bus.log import EpisodeLogWriter
+from bus.log.writer import EpisodeLogWriter
 pts = np.random.default_rng(0).normal(size=(2000, 3)).astype(np.float32)
 w = EpisodeLogWriter(sys.argv[1], "killed", chunk_size=64 * 1024)
 t = 1

@@ -52,7 +52,7 @@ def test_ros2_package_lists_every_msg_and_dependency(tmp_path, capsys):
     package.xml and CMakeLists.txt."""
     import xml.etree.ElementTree as ET
 
-    from bus import ros2_pkg
+    from bus.ros import package as ros2_pkg
 
     assert ros2_pkg.main(["--out", str(tmp_path)]) == 0
     assert "skyloop_msgs" in capsys.readouterr().out
@@ -152,7 +152,7 @@ class FakeScene:
         return lambda t: np.array([[t, 0.0, 3.0, 1.0, 0.5, 0.2, 1.0, 0.0]])
 
     def world(self, scenario):
-        from bus.ros_view import Mesh, WorldGeometry
+        from bus.ros.view import Mesh, WorldGeometry
 
         tri = Mesh(np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
         return WorldGeometry(tri, Mesh.empty(), Mesh.empty(), tri, 0.3)
@@ -169,7 +169,7 @@ def test_view_writes_the_bytes_of_the_message_objects():
     "Speed"): the same bytes as ``m.encode`` of the message objects, for occupied, free
     and partly occupied faces, with and without the edges, odd stamps and radii, frames
     of other lengths (CDR alignment), and paths whose poses are written once."""
-    from bus import ros_view as rv
+    from bus.ros import view as rv
 
     vertices, faces = FakeScene().icosahedron()
     rng = np.random.default_rng(11)
@@ -209,11 +209,11 @@ def test_recorder_view_in_every_file_of_a_split_run(tmp_path):
     from loopback import free_port
 
     from bus import keys
-    from bus.log import EpisodeLogWriter
-    from bus.log_reader import EpisodeLogReader, log_files
+    from bus.log.reader import EpisodeLogReader, log_files
+    from bus.log.record import Recorder
+    from bus.log.writer import EpisodeLogWriter
     from bus.node import Bus
-    from bus.record import Recorder
-    from bus.ros_view import RosView
+    from bus.ros.view import RosView
     from bus.session import SessionConfig, open_session
 
     cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
@@ -301,8 +301,8 @@ def test_world_worker_builds_worlds_in_a_process_of_its_own():
     signals go to the recorder's process group), ended by closing its pipe."""
     import os
 
-    from bus.ros_scene import WorldWorker
-    from bus.ros_view import MARKER_ARRAY
+    from bus.ros.scene import WorldWorker
+    from bus.ros.view import MARKER_ARRAY
 
     worker = WorldWorker()
     try:
@@ -330,7 +330,7 @@ def test_world_worker_builds_the_run_scenario_first_and_once():
     template is, to warm the kernels. A scenario that fails is answered with its error."""
     import io
 
-    from bus.ros_scene import PREBUILT, SitlScene, serve
+    from bus.ros.scene import PREBUILT, SitlScene, serve
 
     class Counting(SitlScene):
         def __init__(self) -> None:
@@ -398,7 +398,7 @@ def test_up_log_compression_reaches_the_recorder(flight):
     flag the recorder is asked for zstd."""
     from mcap.reader import make_reader
 
-    from skyloop.stack_cli import parse_node
+    from skyloop.cli.stack import parse_node
 
     (path,) = flight[0].glob("*.mcap")
     with open(path, "rb") as f:
@@ -408,7 +408,7 @@ def test_up_log_compression_reaches_the_recorder(flight):
 
 
 def test_flight_log_topics_are_there_and_decode(flight_messages):
-    from bus.ros_view import CLOCK_MESSAGE, MARKER_ARRAY, PATH, TF_MESSAGE
+    from bus.ros.view import CLOCK_MESSAGE, MARKER_ARRAY, PATH, TF_MESSAGE
 
     types = {topic: kind for topic, kind, _, _ in flight_messages}
     v = "/skyloop/uav1"
@@ -471,7 +471,7 @@ def test_flight_log_stamps_are_sim_time_and_log_times_wall_clock(flight, flight_
 
 
 def test_flight_log_cloud_path_aircraft_and_faces(flight, flight_messages):
-    from bus.log_reader import read_episodes
+    from bus.log.reader import read_episodes
 
     episodes, report = read_episodes(flight[0])
     assert len(episodes) == 3 and report.clean, report.summary()

@@ -16,7 +16,7 @@ from gcs_rig import DT, GcsRig, mavutil, of_type
 from pymavlink.dialects.v20 import common as M
 
 from mavlink_bridge import frames
-from mavlink_bridge.missions import MissionItem
+from mavlink_bridge.gcs.missions import MissionItem
 
 ORIGIN = (47.397742, 8.545594, 488.0)
 LAT0, LON0 = ORIGIN[0], ORIGIN[1]

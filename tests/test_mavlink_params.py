@@ -16,7 +16,7 @@ from gcs_rig import GcsRig, of_type
 from pymavlink.dialects.v20 import common as mavlink
 
 from bus import params as table
-from mavlink_bridge.params import ParamServer, decode_value, default_params_file, encode_value
+from mavlink_bridge.gcs.params import ParamServer, decode_value, default_params_file, encode_value
 
 NAMES = [p.name for p in table.PARAMS]
 

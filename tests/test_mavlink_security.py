@@ -285,7 +285,7 @@ class _Idle:
 def test_cli_flags_key_file_env_and_passphrase(tmp_path) -> None:
     """The security flags of a node's command line (the bridge's; the policy's are the
     same ``SecurityFlags``) -> ``LinkSecurity``."""
-    from skyloop.stack_cli import parse_node
+    from skyloop.cli.stack import parse_node
 
     def flags(argv: list[str]):
         return parse_node(["bridge", *argv])

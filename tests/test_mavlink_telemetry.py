@@ -17,7 +17,7 @@ from gcs_rig import DT, GcsRig, of_type
 from pymavlink.dialects.v20 import common as M
 
 from mavlink_bridge import frames
-from mavlink_bridge.telemetry import BatteryModel, TelemetryReporter
+from mavlink_bridge.gcs.telemetry import BatteryModel, TelemetryReporter
 from mavlink_bridge.vehicle_link import LinkConfig
 
 ORIGIN = (47.397742, 8.545594, 488.0)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bus.log import read_episodes
+from bus.log.writer import read_episodes
 from perception.observation import ObservationConfig
 from policy.algorithms.agents import make_goal_reward
 from policy.algorithms.replay import ReplayBuffer
@@ -120,7 +120,7 @@ def test_an_episode_without_recorded_limits_is_refused(logged, tmp_path):
     tool, or before the field existed) is refused with the reason, not trained under an
     assumed task."""
     from bus import keys
-    from bus.log import EpisodeLogWriter
+    from bus.log.writer import EpisodeLogWriter
 
     path, _ = logged
     episodes, _ = read_episodes(path)

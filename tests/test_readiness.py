@@ -28,8 +28,8 @@ from mavlink_bridge.node import BridgeNode
 from mavlink_bridge.vehicle_link import LinkConfig, VehicleLinkConfig
 from perception.node import PerceptionNode
 from skyloop import launcher
+from skyloop.cli.stack import parse_node
 from skyloop.launcher import Child, Graph, nodes_of, ready_waits
-from skyloop.stack_cli import parse_node
 
 ROOT = Path(__file__).resolve().parent.parent
 

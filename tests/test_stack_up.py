@@ -28,7 +28,7 @@ import pytest
 from loopback import alive, session_members, sigint_default, up_args
 
 from bus import messages as m
-from bus.log_reader import EpisodeLogReader, read_episodes
+from bus.log.reader import EpisodeLogReader, read_episodes
 from skyloop import launcher
 
 SEED, EPISODES = 1000, 2

@@ -14,7 +14,7 @@ import pytest
 
 from bus import keys
 from bus import messages as m
-from bus.log import EpisodeLogWriter, read_episodes
+from bus.log.writer import EpisodeLogWriter, read_episodes
 from bus.task import TASK, goal_angles
 from policy.algorithms.agents import make_goal_reward
 from policy.algorithms.replay import ReplayBuffer

@@ -23,8 +23,8 @@ from gcs_rig import DT, GcsRig, of_type
 from pymavlink.dialects.v20 import common as M
 
 from bus import params
+from mavlink_bridge.gcs.telemetry import TelemetryReporter
 from mavlink_bridge.modes import AUTO_LOITER, AUTO_TAKEOFF, BaseMode
-from mavlink_bridge.telemetry import TelemetryReporter
 from mavlink_bridge.vehicle_link import takeoff_altitude
 from sitl.commander.machine import Commander, State
 from sitl.node.vehicle_service import apply_param

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from loopback import up_args
 
-from bus.ros_view import face_colours, fan_triangles
+from bus.ros.view import face_colours, fan_triangles
 from skyloop.launcher import free_port
 from skyloop.viewer import parse_target
 
@@ -66,7 +66,7 @@ def test_targets_parse_or_name_the_flag():
 
 
 def test_fan_triangles_give_each_face_its_triangles():
-    """The icosahedron's faces as the view fills them (bus.ros_view, shared with the
+    """The icosahedron's faces as the view fills them (bus.ros.view, shared with the
     log's 3D view)."""
     from perception.icosahedron import TruncatedIcosahedron
 
@@ -137,7 +137,7 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 def terrain_share(png: Path) -> float:
     """Share of the 3D view (the left three quarters of the page, below the top bar) in
     the terrain's colours: green valleys to tan slopes (the viewer's
-    bus.ros_view.terrain_colours), not the viewer's white, grey or blue."""
+    bus.ros.view.terrain_colours), not the viewer's white, grey or blue."""
     import matplotlib.image as mpimg
 
     img = (mpimg.imread(png)[..., :3] * 255).astype(int)

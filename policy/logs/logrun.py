@@ -1,4 +1,4 @@
-"""Log in-process env episodes in the stack's episode-log format (``bus.log``).
+"""Log in-process env episodes in the stack's episode-log format (``bus.log.writer``).
 
 The same topics and contract as a stack run (see :mod:`policy.logs.offline`): episode
 START/END, one observation, one truth pose per step, one ``cmd_vel`` per action and the
@@ -16,7 +16,7 @@ import numpy as np
 
 from bus import messages as m
 from bus.keys import CMD_VEL, EPISODE, OBSERVATION, STEP_RECORD, TRUTH
-from bus.log import EpisodeLogWriter
+from bus.log.writer import EpisodeLogWriter
 from bus.task import TASK, episode_outcome
 from perception.observation import scaling_fields
 from policy.training.rollout import Controller

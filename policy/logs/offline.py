@@ -1,6 +1,6 @@
 """Learning from logged episodes: ``skyloop train --from-logs PATH...``.
 
-An episode log (``bus.log``, MCAP with ROS 2 schemas) holds, per vehicle and episode,
+An episode log (``bus.log.writer``, MCAP with ROS 2 schemas) holds, per vehicle and episode,
 the messages this module rebuilds transitions from (the *log contract*):
 
 - ``episode`` START (seed, start, goal, the episode limits it runs under) and END
@@ -43,8 +43,8 @@ import torch
 from tqdm import tqdm
 
 from bus import keys
-from bus.log import read_episodes
-from bus.log_reader import EpisodeLogReader, log_files
+from bus.log.reader import EpisodeLogReader, log_files
+from bus.log.writer import read_episodes
 from bus.messages import (
     episode_limits,
     is_action,
@@ -86,7 +86,7 @@ class LogReport:
 
 def episode_steps(episode, commands: dict[int, tuple] | None = None,
                   observations: dict[tuple[Any, int, int], Any] | None = None) -> EpisodeSteps:
-    """Decode a logged episode (``bus.log_reader.Episode``) into :class:`EpisodeSteps`.
+    """Decode a logged episode (``bus.log.reader.Episode``) into :class:`EpisodeSteps`.
 
     ``commands`` (body-frame ``cmd_vel`` of the whole file by stamp) recovers an action
     the recorder saw after the episode's END event: in a stack run commands come from

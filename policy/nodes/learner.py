@@ -1,6 +1,6 @@
 """The actor-learner's settings (``skyloop learner``), numpy and tyro only.
 
-The node is :mod:`policy.nodes.learner_node`, the command line :mod:`skyloop.learner_cli`.
+The node is :mod:`policy.nodes.learner_node`, the command line :mod:`skyloop.cli.learner`.
 Policy nodes started with ``skyloop policy --weights-from-bus`` fly the versions it
 publishes, swapped in between episodes.
 """
@@ -23,7 +23,7 @@ ALGOS = get_args(Algo)  # the keys of policy.algorithms.agents.ALGOS (which impo
 class LearnerConfig:
     """What the learner learns from and how (see :mod:`policy.nodes.learner_node`). Each
     default here is the only one: ``skyloop learner``'s options are generated from these
-    fields (``skyloop.learner_cli``, with tyro); a bad value is a ``ConfigError`` naming
+    fields (``skyloop.cli.learner``, with tyro); a bad value is a ``ConfigError`` naming
     the flag, on construction."""
 
     vehicles: Annotated[list[str], tyro.conf.arg(metavar="NAME [NAME ...]")] = field(

@@ -2,7 +2,7 @@
 names the field and its command-line flag, raised when the dataclass is constructed
 (``__post_init__``), so a bad value never gets as far as starting a run. The
 ``skyloop`` commands whose options are generated from these dataclasses
-(``skyloop.dataclass_cli``) print it as argparse's one line:
+(``skyloop.cli.dataclass_cli``) print it as argparse's one line:
 ``skyloop train: error: argument --episodes: must be at least 1, got -1``.
 
 Light on purpose (tyro, no torch, no env): ``TrainConfig`` and ``EvalConfig`` live here so
@@ -72,7 +72,7 @@ def check_at_least(config: object, least: Mapping[str, int]) -> None:
 @dataclass
 class TrainConfig:
     """One training run. Each default here is the only one: ``skyloop train``'s options
-    are generated from these fields (``skyloop.train_cli``, with tyro), and grid files
+    are generated from these fields (``skyloop.cli.train``, with tyro), and grid files
     set them by name (``skyloop.experiment.grid``)."""
 
     algo: Algo = "td3"
@@ -204,7 +204,7 @@ class TrainConfig:
 @dataclass
 class EvalConfig:
     """One evaluation (``policy.training.evaluate.evaluate``'s arguments). ``skyloop eval``'s
-    options are generated from these fields (``skyloop.dataclass_cli``, with tyro): each
+    options are generated from these fields (``skyloop.cli.dataclass_cli``, with tyro): each
     default lives here."""
 
     policy: Annotated[str | None, tyro.conf.arg(metavar="ACTOR|RUN_DIR|scripted")] = None

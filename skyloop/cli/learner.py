@@ -1,7 +1,7 @@
 """``skyloop learner``: the actor-learner's command line, generated from
-:class:`policy.nodes.learner.LearnerConfig` with tyro (``skyloop.dataclass_cli``), so each
+:class:`policy.nodes.learner.LearnerConfig` with tyro (``skyloop.cli.dataclass_cli``), so each
 default lives once, in the dataclass, and ``--help`` shows it with the choices; the
-Zenoh flags are the nodes' (``skyloop.stack_settings.ZenohFlags``). The node,
+Zenoh flags are the nodes' (``skyloop.cli.stack_settings.ZenohFlags``). The node,
 :mod:`policy.nodes.learner_node`, is imported only when the command runs.
 
 Example: two vehicles' stacks (``skyloop sim/perception/bridge/policy --vehicle uav1``
@@ -25,8 +25,8 @@ from typing import Annotated
 import tyro
 
 from policy.nodes.learner import LearnerConfig
-from skyloop.dataclass_cli import parse
-from skyloop.stack_settings import ZenohFlags
+from skyloop.cli.dataclass_cli import parse
+from skyloop.cli.stack_settings import ZenohFlags
 
 __all__ = ["HELP", "LearnerCommand", "main", "parse_learner", "run_learner"]
 

@@ -1,4 +1,4 @@
-"""Read episode logs (see :mod:`bus.log`) robustly: episodes, incomplete ones, damage.
+"""Read episode logs (see :mod:`bus.log.writer`) robustly: episodes, incomplete ones, damage.
 
 The reader scans the MCAP records itself (no index needed, so a crashed run without a
 summary reads too) and never raises on damaged content: it validates every chunk's
@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from bus.keys import parse_ros_topic
-from bus.mcap_scan import (
+from bus.log.mcap_scan import (
     CHANNEL,
     CHUNK,
     FOOTER,
@@ -186,7 +186,7 @@ class EpisodeLogReader:
             files = log_files(p)
             if len(files) != 1:
                 raise LogReadError(f"{p} holds {len(files)} .mcap files"
-                                   + (" (a split run: read each, bus.log_reader.log_files)"
+                                   + (" (a split run: read each, bus.log.reader.log_files)"
                                       if files else ""))
             p = files[0]
         elif not p.exists():

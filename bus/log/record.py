@@ -9,7 +9,7 @@ into a bounded queue (a full queue is a *counted* drop; the channel itself holds
 receiving thread stalled that long); one writer thread, woken once per batch, validates
 each payload against its topic's type (an undecodable payload is counted, not written,
 so the log stays readable by every tool) and appends it to the
-:class:`~bus.log.EpisodeLogWriter` under the ROS 2 topic ``/skyloop/<vehicle>/<topic>``.
+:class:`~bus.log.writer.EpisodeLogWriter` under the ROS 2 topic ``/skyloop/<vehicle>/<topic>``.
 Stopping undeclares the subscriber, takes what the channel still holds, drains the
 queue, then finishes the file. Measured in a lockstep stack (issue 11, "Speed";
 benchmarks/RESULTS.md 2026-12-03): the recorder's Python threads woke 1.4 times a step
@@ -24,17 +24,17 @@ until that vehicle's next START arrives or ``end_grace_s`` (0.25 s) passes; step
 written before it, anything else (status, actor weights, ...) right after it, so between
 episodes as before; stopping writes what is held.
 
-The log's 3D view (``view``, a :class:`~bus.ros_view.RosView`; ``skyloop record`` has
+The log's 3D view (``view``, a :class:`~bus.ros.view.RosView`; ``skyloop record`` has
 one unless ``--no-ros-view``): the writer thread hands each message it writes to the
 view and writes what the view derives from it (``/tf``, ``/tf_static``, ``/clock``, the
-world, goal, aircraft and icosahedron markers, the path; see :mod:`bus.ros_view`) just
+world, goal, aircraft and icosahedron markers, the path; see :mod:`bus.ros.view`) just
 before it, with the same log time, counted in ``derived`` (not ``written``, which stays
-the bus messages). A world (built by a worker process, :class:`bus.ros_scene.WorldWorker`)
+the bus messages). A world (built by a worker process, :class:`bus.ros.scene.WorldWorker`)
 is written when ready; at stop the writer waits for it at most ``world_wait_s`` (1 s:
 the launcher's stop grace is 3 s for every node), then the view closes its worker.
 
 :func:`run_record` is what the ``skyloop record`` command runs (its flags:
-``skyloop.tool_cli.RecordCommand``).
+``skyloop.cli.tools.RecordCommand``).
 """
 
 from __future__ import annotations
@@ -52,10 +52,10 @@ import zenoh
 
 from bus import keys
 from bus.keys import key_all, msgtype, parse_key
-from bus.log import EpisodeLogWriter
+from bus.log.writer import EpisodeLogWriter
 from bus.messages import END, START, decode
 from bus.node import RateLimitedLog
-from bus.ros_view import RosView
+from bus.ros.view import RosView
 from bus.session import SessionConfig, open_session
 
 log = logging.getLogger("skyloop.record")
@@ -357,7 +357,7 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
                scenario: str | None = None) -> RecordResult:
     """Record until ``stop_event`` is set (or Ctrl-C); return the run directory and
     counters. ``ready`` is set once the subscriber is declared. ``ros_view``: add the
-    log's 3D view (:mod:`bus.ros_view`, geometry from :class:`bus.ros_scene.SitlScene`);
+    log's 3D view (:mod:`bus.ros.view`, geometry from :class:`bus.ros.scene.SitlScene`);
     ``scenario``: the one the run flies, whose world the view's worker builds first (a
     loaded machine can take longer than a short run to build the default one and then
     this one: seen in CI, a 3-episode run's log without its world)."""
@@ -370,7 +370,7 @@ def run_record(out_dir: str | Path, session_config: SessionConfig | None = None,
                                   split_minutes=split_minutes)
         view = None
         if ros_view:
-            from bus.ros_scene import SitlScene, WorldWorker
+            from bus.ros.scene import SitlScene, WorldWorker
             view = RosView(SitlScene(),
                            worlds=WorldWorker(prebuilt=(scenario,) if scenario else ()))
         recorder = Recorder(session, writer, vehicle, queue_size=queue_size, view=view)

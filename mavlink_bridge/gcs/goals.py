@@ -6,7 +6,7 @@ episode, and a PoseStamped on ``skyloop/<vehicle>/goal`` (world ENU) replaces it
 running episode ends ``aborted``, the next starts where the vehicle is). So "fly a
 mission" here means: send the mission's goals to the policy one after another.
 
-* **Mission**: an uploaded MAV_MISSION_TYPE_MISSION list (:mod:`mavlink_bridge.missions`)
+* **Mission**: an uploaded MAV_MISSION_TYPE_MISSION list (:mod:`mavlink_bridge.gcs.missions`)
   is flown on MAV_CMD_MISSION_START (300; param1 = first item, else the current one) or
   on DO_SET_MODE AUTO.MISSION (what QGroundControl, MAVSDK and MAVProxy send; resumes at
   the current item). The vehicle keeps reporting OFFBOARD (the policy flies the goals;
@@ -62,7 +62,7 @@ from typing import TYPE_CHECKING, Any
 
 from bus import messages as bm
 from mavlink_bridge import frames
-from mavlink_bridge.missions import GLOBAL_AMSL, GLOBAL_RELATIVE, LOCAL, MissionItem, check_item
+from mavlink_bridge.gcs.missions import GLOBAL_AMSL, GLOBAL_RELATIVE, LOCAL, MissionItem, check_item
 from mavlink_bridge.modes import AutoSubMode, MainMode, Px4Mode, state_for_px4_mode
 from mavlink_bridge.transport import mavlink
 

@@ -2,7 +2,7 @@
 recorder writes (issue 12): the TF tree, ``/clock``, the world, the goal, the flown path,
 the moving aircraft and the icosahedron faces.
 
-The recorder (:mod:`bus.record`) hands every message it writes to :meth:`RosView.derive`
+The recorder (:mod:`bus.log.record`) hands every message it writes to :meth:`RosView.derive`
 on its writer thread and writes what comes back (CDR bytes on ROS 2 topics) just before
 it, with the same log time. Everything derived depends on message contents only (sim
 stamps, positions), never on the wall clock, so two runs of the same seeds give the same
@@ -35,9 +35,9 @@ docs/interfaces.md "Logs in 3D"); static things (``/tf_static``, the world) are
 stamped 0.
 
 Geometry comes from a :class:`SceneSource` (the scenario's world, the icosahedron):
-:mod:`bus.ros_scene` reads the simulator's and perception's own. A world (about 1 s:
+:mod:`bus.ros.scene` reads the simulator's and perception's own. A world (about 1 s:
 the world, then the terrain's decimation) is built by ``worlds``: in the recorder a
-process of its own (:class:`bus.ros_scene.WorldWorker`, so that the writer thread never
+process of its own (:class:`bus.ros.scene.WorldWorker`, so that the writer thread never
 shares the interpreter lock with it), else a thread (:class:`ThreadWorlds`); its
 markers are written with the first message after it is ready. The source's imports and
 numba kernels warm up on a thread when the view is made, before any episode; nothing
@@ -153,7 +153,7 @@ class WorldGeometry:
 
 
 class SceneSource(Protocol):
-    """Where geometry comes from (:class:`bus.ros_scene.SitlScene`; tests pass fakes)."""
+    """Where geometry comes from (:class:`bus.ros.scene.SitlScene`; tests pass fakes)."""
 
     def warm(self) -> None:
         """Load what the other calls need (called once, off the writer thread)."""
@@ -559,7 +559,7 @@ def _in_thread(fn: Callable[[], Any], name: str) -> WorldRequest:
 
 class ThreadWorlds:
     """World markers built on a thread of the calling process (tests, small scenes; the
-    recorder uses :class:`bus.ros_scene.WorldWorker`, a process of its own)."""
+    recorder uses :class:`bus.ros.scene.WorldWorker`, a process of its own)."""
 
     def __init__(self, scene: SceneSource) -> None:
         self.scene = scene

@@ -1,5 +1,5 @@
 """``skyloop train``: its options are generated from ``TrainConfig`` with tyro
-(``skyloop.dataclass_cli``), so each default lives once, in the dataclass, and
+(``skyloop.cli.dataclass_cli``), so each default lives once, in the dataclass, and
 ``--help`` shows it with the choices. The few options that are not the run's config
 (where it goes, resuming, learning from logs) are ``TrainCommand``'s own fields.
 
@@ -19,7 +19,7 @@ from typing import Annotated
 import tyro
 
 from policy.training.settings import OFFLINE_UPDATES, ConfigError, TrainConfig
-from skyloop.dataclass_cli import parse
+from skyloop.cli.dataclass_cli import parse
 
 __all__ = ["TrainCommand", "main", "parse_train", "run_train"]
 

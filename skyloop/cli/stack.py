@@ -1,12 +1,12 @@
 """The stack's subcommands: ``sim``, ``perception``, ``policy``, ``bridge`` and ``up``
-(``record``, ``router`` and ``certs`` are in ``skyloop.tool_cli``). Each node is a thin
+(``record``, ``router`` and ``certs`` are in ``skyloop.cli.tools``). Each node is a thin
 binding of a core to the bus (see the ``node.py`` of its package); this module only
 parses flags, opens the Zenoh session (``SKYLOOP_ZENOH_*`` environment, overridden by
 ``--mode/--connect/--listen``), handles SIGINT/SIGTERM and closes things in order.
 
 The options of ``sim``, ``perception``, ``policy``, ``bridge`` and ``up`` are generated
-from their settings dataclasses (``skyloop.stack_settings``) with tyro
-(``skyloop.dataclass_cli.parse``): :data:`COMMANDS`, :func:`parse_node`."""
+from their settings dataclasses (``skyloop.cli.stack_settings``) with tyro
+(``skyloop.cli.dataclass_cli.parse``): :data:`COMMANDS`, :func:`parse_node`."""
 
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from skyloop.dataclass_cli import parse
-from skyloop.stack_settings import (
+from skyloop.cli.dataclass_cli import parse
+from skyloop.cli.stack_settings import (
     BridgeCommand,
     BusFlags,
     PerceptionCommand,
@@ -269,7 +269,7 @@ def run_node(name: str, argv: Sequence[str]) -> int:
 
 def add_stack_commands(sub: Any) -> None:
     """Register the stack's subcommands on ``sub`` (argparse subparsers) for
-    ``skyloop --help``; ``skyloop.cli.main`` hands each its own command line."""
+    ``skyloop --help``; ``skyloop.cli.main.main`` hands each its own command line."""
     for name, (_, _, text) in COMMANDS.items():
         p = sub.add_parser(name, help=f"{text} (see '{name} --help')", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER)

@@ -1,4 +1,4 @@
-"""Low-level, defensive MCAP record parsing for :mod:`bus.log_reader`.
+"""Low-level, defensive MCAP record parsing for :mod:`bus.log.reader`.
 
 Every function takes a buffer (``bytes`` or an ``mmap``) and explicit bounds and raises
 :class:`Corrupt` instead of reading past a record or trusting a broken length.

@@ -40,7 +40,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from mavlink_bridge import frames
-from mavlink_bridge.params import LinkOps
+from mavlink_bridge.gcs.params import LinkOps
 from mavlink_bridge.transport import mavlink
 
 M = mavlink

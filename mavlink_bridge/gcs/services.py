@@ -6,16 +6,16 @@
 * ``messages`` -- message id -> builder, for MAV_CMD_REQUEST_MESSAGE (512; COMMAND_ACK,
   then the message to the requester) and for the streams: AUTOPILOT_VERSION (also on
   the legacy MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 520), MISSION_CURRENT and every
-  telemetry message of :mod:`mavlink_bridge.telemetry`;
-* ``rates`` -- one :class:`~mavlink_bridge.rates.MessageRates` per link;
+  telemetry message of :mod:`mavlink_bridge.gcs.telemetry`;
+* ``rates`` -- one :class:`~mavlink_bridge.gcs.rates.MessageRates` per link;
   MAV_CMD_SET_MESSAGE_INTERVAL (511) / GET_MESSAGE_INTERVAL (510) act on the link the
   command came in on;
-* ``params`` (:mod:`mavlink_bridge.params`) and ``missions``
-  (:mod:`mavlink_bridge.missions`): their messages are answered to the sender, messages
+* ``params`` (:mod:`mavlink_bridge.gcs.params`) and ``missions``
+  (:mod:`mavlink_bridge.gcs.missions`): their messages are answered to the sender, messages
   addressed to another system are counted (``<message>.other_target``) and ignored;
 * TIMESYNC: a request (tc1 == 0) is answered with tc1 = the vehicle's ``now`` in ns
   and ts1 echoed;
-* FILE_TRANSFER_PROTOCOL: refused at once (:mod:`mavlink_bridge.ftp`), so a ground
+* FILE_TRANSFER_PROTOCOL: refused at once (:mod:`mavlink_bridge.gcs.ftp`), so a ground
   station that tries MAVLink FTP first falls back to the parameter protocol;
 * :meth:`GroundStationServices.send_due` -- the heartbeat at once on a
   mode/arming/status change, HOME_POSITION at once when home moves, every stream when due.
@@ -28,12 +28,12 @@ from collections import Counter
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from mavlink_bridge.autopilot_version import autopilot_version
-from mavlink_bridge.ftp import FtpRefuser
-from mavlink_bridge.missions import MissionServer
-from mavlink_bridge.params import ParamServer, default_params_file
-from mavlink_bridge.rates import MessageRates, default_intervals
-from mavlink_bridge.telemetry import TelemetryReporter
+from mavlink_bridge.gcs.autopilot_version import autopilot_version
+from mavlink_bridge.gcs.ftp import FtpRefuser
+from mavlink_bridge.gcs.missions import MissionServer
+from mavlink_bridge.gcs.params import ParamServer, default_params_file
+from mavlink_bridge.gcs.rates import MessageRates, default_intervals
+from mavlink_bridge.gcs.telemetry import TelemetryReporter
 from mavlink_bridge.transport import Address, UdpEndpoint, mavlink
 
 if TYPE_CHECKING:

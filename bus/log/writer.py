@@ -19,11 +19,11 @@ Crash safety (a SIGKILL loses at most the episode in progress):
   expect them) and at the top level of the data section, so a reader that skips one
   corrupt chunk still knows every channel.
 - ``metadata.yaml`` and the MCAP summary (indexes, statistics) are written on
-  :meth:`EpisodeLogWriter.close`. A crashed run has neither; :mod:`bus.log_reader`
+  :meth:`EpisodeLogWriter.close`. A crashed run has neither; :mod:`bus.log.reader`
   reads it by scanning, and ``rosbags`` reads the ``.mcap`` file itself by scanning too
   (as long as the tail is not cut inside a record).
 
-The reader (episodes, incomplete and corrupt accounting) is :mod:`bus.log_reader`,
+The reader (episodes, incomplete and corrupt accounting) is :mod:`bus.log.reader`,
 re-exported here.
 """
 
@@ -48,7 +48,7 @@ from mcap.writer import CompressionType, Writer
 from ruamel.yaml import YAML
 
 from bus.keys import parse_ros_topic, ros_topic
-from bus.log_reader import (
+from bus.log.reader import (
     EPISODE_METADATA,
     Episode,
     EpisodeLogReader,
@@ -58,7 +58,7 @@ from bus.log_reader import (
     read_episodes,
 )
 from bus.messages import END, EPISODE_EVENT, START, decode, encode, msgdef, outcome_name
-from bus.ros_view import latched
+from bus.ros.view import latched
 
 __all__ = ["EpisodeLogWriter", "Episode", "EpisodeLogReader", "LoggedMessage", "LogReadError",
            "ReadReport", "read_episodes", "recover_log", "default_run_name", "EPISODE_METADATA"]
@@ -67,7 +67,7 @@ PROFILE = "ros2"
 SCHEMA_ENCODING = "ros2msg"
 MESSAGE_ENCODING = "cdr"
 RUN_METADATA = "skyloop.run"
-LIBRARY = "skyloop.bus.log"
+LIBRARY = "skyloop.bus.log.writer"
 _COMPRESSION = {"none": CompressionType.NONE, "zstd": CompressionType.ZSTD,
                 "lz4": CompressionType.LZ4}
 #: Offered QoS written per topic (ROS 2 Humble string format): reliable, volatile,
@@ -78,7 +78,7 @@ _QOS_YAML = (
     "  liveliness: 1\n  liveliness_lease_duration:\n    sec: 0\n    nsec: 0\n"
     "  avoid_ros_namespace_conventions: false"
 )
-#: The same for latched topics (``bus.ros_view.latched``: ``/tf_static``, the world and
+#: The same for latched topics (``bus.ros.view.latched``: ``/tf_static``, the world and
 #: goal markers): reliable, transient local, keep last 1, as tf2's static broadcaster
 #: offers ``/tf_static``; ``ros2 bag play`` offers them so, and late subscribers get them.
 _QOS_LATCHED_YAML = _QOS_YAML.replace("depth: 10", "depth: 1").replace("durability: 2",
@@ -136,7 +136,7 @@ class EpisodeLogWriter:
     first episode boundary (an END with no episode open) once M minutes of ``clock``
     (seconds; default ``time.monotonic``, wall time) have passed since the open file
     began; with both, whichever comes first. ``compression``: of each MCAP chunk,
-    ``"zstd"`` (default), ``"lz4"`` or ``"none"``; :mod:`bus.log_reader`, ``rosbags``
+    ``"zstd"`` (default), ``"lz4"`` or ``"none"``; :mod:`bus.log.reader`, ``rosbags``
     and ``mcap``'s reader read all three (tested). Not thread-safe: one writer thread.
     """
 

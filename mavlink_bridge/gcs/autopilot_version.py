@@ -6,10 +6,10 @@ param1 = 148 (AUTOPILOT_VERSION); older stacks send ``MAV_CMD_REQUEST_AUTOPILOT_
 :mod:`mavlink_bridge.vehicle_link`). The capability bits are what skyloop implements:
 
 * MAVLINK2 -- MAVLink 2 framing on every link;
-* MISSION_INT -- MISSION_ITEM_INT / MISSION_REQUEST_INT (:mod:`mavlink_bridge.missions`);
+* MISSION_INT -- MISSION_ITEM_INT / MISSION_REQUEST_INT (:mod:`mavlink_bridge.gcs.missions`);
 * MISSION_FENCE, MISSION_RALLY -- the same protocol for geofence and rally points;
 * PARAM_FLOAT and PARAM_ENCODE_BYTEWISE -- PARAM_VALUE carries REAL32 values as floats
-  and INT32 values bytewise in the float field, as PX4 does (:mod:`mavlink_bridge.params`);
+  and INT32 values bytewise in the float field, as PX4 does (:mod:`mavlink_bridge.gcs.params`);
 * SET_POSITION_TARGET_LOCAL_NED -- the offboard velocity setpoints;
 * COMMAND_INT -- COMMAND_INT is handled like COMMAND_LONG.
 

@@ -1,5 +1,5 @@
 """The geometry the log's 3D view shows, read from the simulator's world and from
-perception's icosahedron (:class:`SitlScene`, a :class:`bus.ros_view.SceneSource`), and
+perception's icosahedron (:class:`SitlScene`, a :class:`bus.ros.view.SceneSource`), and
 the process that builds worlds for a recorder (:class:`WorldWorker`).
 
 ``bus`` imports nothing internal at import time (``../shared/DESIGN.md``); this module is
@@ -10,7 +10,7 @@ the very geometry the simulator flies in instead of the bus carrying it. Without
 packages (a recorder installed alone) the view still writes TF, clock, path and goal;
 the world, aircraft and icosahedron markers are counted as ``scene_errors``.
 
-Worlds are built in a child process, ``python -m bus.ros_scene`` (:class:`WorldWorker`):
+Worlds are built in a child process, ``python -m bus.ros.scene`` (:class:`WorldWorker`):
 building one takes about 1 s of CPU, much of it in calls that hold the interpreter lock
 (numba, qhull); on a thread of the recorder that starved its writer thread, whose
 bounded queue then dropped messages (seen: 175 of one run on a loaded machine). The
@@ -39,7 +39,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from bus.ros_view import Mesh, WorldGeometry, WorldRequest, decimate_heightfield
+from bus.ros.view import Mesh, WorldGeometry, WorldRequest, decimate_heightfield
 
 log = logging.getLogger("skyloop.record")
 _FRAME = struct.Struct("<BHI")
@@ -48,7 +48,7 @@ _FRAME = struct.Struct("<BHI")
 class SitlScene:
     """Scenario geometry from ``sitl.world.world`` and the icosahedron from
     ``perception.icosahedron``; the terrain decimated to at most ``max_terrain_triangles``
-    (:func:`bus.ros_view.decimate_heightfield`; the scenarios' 55 m square at 0.25 m is
+    (:func:`bus.ros.view.decimate_heightfield`; the scenarios' 55 m square at 0.25 m is
     96,800 triangles; at 4,000 the valley's stays within 0.24 m of it, forest's and
     city's within 2 cm with fewer). ``terrain_error``: the last world's worst error (m)."""
 
@@ -97,8 +97,8 @@ class SitlScene:
 
 
 class WorldWorker:
-    """``python -m bus.ros_scene`` as a child process building world markers (see the
-    module docstring); :meth:`request` returns a :class:`~bus.ros_view.WorldRequest`
+    """``python -m bus.ros.scene`` as a child process building world markers (see the
+    module docstring); :meth:`request` returns a :class:`~bus.ros.view.WorldRequest`
     that a reader thread completes. The child runs in a session of its own, so
     the recorder's stop signals do not end it before the recorder is done with it;
     :meth:`close` does (and the end of the recorder: its input ends)."""
@@ -107,7 +107,7 @@ class WorldWorker:
                  prebuilt: Sequence[str] = ()) -> None:
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "bus.ros_scene", "--max-terrain-triangles",
+            [sys.executable, "-m", "bus.ros.scene", "--max-terrain-triangles",
              str(max_terrain_triangles), *(["--prebuild", *prebuilt] if prebuilt else [])],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, start_new_session=True)
         self._lock = threading.Lock()
@@ -180,7 +180,7 @@ def serve(stdin: IO[bytes], stdout: IO[bytes], scene: Any,
     """The worker's loop: a scenario name a line in, a frame (module docstring) out;
     the markers of each scenario built once."""
     from bus.messages import encode
-    from bus.ros_view import world_markers
+    from bus.ros.view import world_markers
 
     built: dict[str, bytes] = {}
 
@@ -214,7 +214,7 @@ def serve(stdin: IO[bytes], stdout: IO[bytes], scene: Any,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bus.ros_scene",
+    p = argparse.ArgumentParser(prog="python -m bus.ros.scene",
                                 description="Build world markers for a recorder (stdin: "
                                             "scenario names; stdout: framed CDR).")
     p.add_argument("--max-terrain-triangles", type=int, default=4000)

@@ -1,18 +1,18 @@
 """The settings of the stack's commands (``skyloop sim``, ``perception``, ``policy``,
 ``bridge`` and ``up``) as dataclasses; their command lines are generated from them with
-tyro (``skyloop.dataclass_cli.parse``), so each default lives once and ``--help`` shows
+tyro (``skyloop.cli.dataclass_cli.parse``), so each default lives once and ``--help`` shows
 it with the choices, and a bad value is refused with one line naming the flag (exit 2)
 before anything starts.
 
 The flag groups several commands take are one mixin each, inherited, so their flags
 stay flat (``--vehicle``, not ``--bus.vehicle``) and their attributes too
-(``settings.vehicle``): ``VehicleFlag`` (``skyloop.settings_base``, with the base and
+(``settings.vehicle``): ``VehicleFlag`` (``skyloop.cli.settings_base``, with the base and
 the range checks), :class:`ZenohFlags` (the Zenoh session of a node:
 ``SessionConfig.from_flags``; with ``--vehicle``: :class:`BusFlags`), :class:`ClockFlags`
 (``--lockstep``/``--realtime``), :class:`SecurityFlags`
 (``mavlink_bridge.security.security_from_args`` reads them), :class:`MavlinkPorts`,
 :class:`ScenarioFlag`, :class:`SimRules` (what ``up`` hands the sim) and
-:class:`ViewFlags` (``skyloop view``/``viz``, in ``skyloop.tool_cli``).
+:class:`ViewFlags` (``skyloop view``/``viz``, in ``skyloop.cli.tools``).
 
 Where a default belongs to a config of the code the flags feed, it is read from there:
 the episode limits from the task specification (``bus.task.TASK``), the MAVLink ports
@@ -37,8 +37,7 @@ from mavlink_bridge.offboard_client import OffboardClientConfig
 from mavlink_bridge.security import KEY_ENV
 from mavlink_bridge.vehicle_link import VehicleLinkConfig
 from policy.training.settings import ConfigError
-from skyloop.placement import PinMode
-from skyloop.settings_base import (
+from skyloop.cli.settings_base import (
     Repeated,
     Settings,
     VehicleFlag,
@@ -48,6 +47,7 @@ from skyloop.settings_base import (
     port,
     positive,
 )
+from skyloop.placement import PinMode
 
 __all__ = ["DEMO_SEED", "BridgeCommand", "BusFlags", "ClockFlags", "MavlinkPorts",
            "PerceptionCommand", "PolicyCommand", "ScenarioFlag", "SecurityFlags", "Settings",

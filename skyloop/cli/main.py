@@ -10,13 +10,13 @@ EVAL_HELP = "evaluate a policy: success/collision/timeout rates, 95% CI"
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from skyloop.train_cli import main as train_main
+    from skyloop.cli.train import main as train_main
 
     return train_main(args.rest)
 
 
 def _cmd_learner(args: argparse.Namespace) -> int:
-    from skyloop.learner_cli import main as learner_main
+    from skyloop.cli.learner import main as learner_main
 
     return learner_main(args.rest)
 
@@ -29,7 +29,7 @@ def _cmd_health(args: argparse.Namespace) -> int:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     from policy.training.settings import EvalConfig  # light: parsing imports no torch
-    from skyloop.dataclass_cli import parse
+    from skyloop.cli.dataclass_cli import parse
 
     c = parse(EvalConfig, args.rest, prog="skyloop eval", description=EVAL_HELP)
     from policy.training.evaluate import evaluate, format_summary
@@ -42,8 +42,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 def _add_group(sub: argparse._SubParsersAction, group: str, text: str) -> None:
     """``skyloop GROUP`` in ``skyloop --help`` and its commands in ``skyloop GROUP
-    --help``; each command's options are generated (``skyloop.tool_cli``)."""
-    from skyloop.tool_cli import COMMANDS as TOOLS
+    --help``; each command's options are generated (``skyloop.cli.tools``)."""
+    from skyloop.cli.tools import COMMANDS as TOOLS
 
     p = sub.add_parser(group, help=text)
     gsub = p.add_subparsers(dest=f"{group}_command", required=True)
@@ -55,14 +55,14 @@ def _add_group(sub: argparse._SubParsersAction, group: str, text: str) -> None:
 def _generated(sub: argparse._SubParsersAction, name: str, text: str,
                word: str | None = None) -> None:
     """``skyloop NAME`` in ``skyloop --help``; its options are generated from a dataclass
-    (``skyloop.tool_cli``), and ``main`` hands it the rest of the command line."""
+    (``skyloop.cli.tools``), and ``main`` hands it the rest of the command line."""
     p = sub.add_parser(word or name, help=f"{text} (see '{name} --help')", add_help=False)
     p.add_argument("rest", nargs=argparse.REMAINDER)
     p.set_defaults(func=lambda args: _cmd_tool(name, args))
 
 
 def _cmd_tool(name: str, args: argparse.Namespace) -> int:
-    from skyloop.tool_cli import run_tool
+    from skyloop.cli.tools import run_tool
 
     return run_tool(name, args.rest)
 
@@ -76,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"skyloop {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    from skyloop.tool_cli import COMMANDS as TOOLS
+    from skyloop.cli.tools import COMMANDS as TOOLS
 
     for name in ("demo", "render", "bench"):
         _generated(sub, name, TOOLS[name][2])
@@ -96,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     _generated(sub, "plot", TOOLS["plot"][2])
 
     _add_group(sub, "experiment", "grids of training runs on Ray Tune, and reports")
-    from skyloop.stack_cli import add_stack_commands
+    from skyloop.cli.stack import add_stack_commands
 
     add_stack_commands(sub)
     for name in ("record", "router", "certs"):
@@ -117,10 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Subcommands whose options are generated from config dataclasses with tyro
-# (skyloop.dataclass_cli): main() hands them the rest of the command line.
+# (skyloop.cli.dataclass_cli): main() hands them the rest of the command line.
 GENERATED = {"train": _cmd_train, "eval": _cmd_eval, "learner": _cmd_learner,
              "health": _cmd_health}
-STACK = ("sim", "perception", "policy", "bridge", "up")  # skyloop.stack_cli.COMMANDS
+STACK = ("sim", "perception", "policy", "bridge", "up")  # skyloop.cli.stack.COMMANDS
 #: commands that install their own SIGINT/SIGTERM handling before they open anything;
 #: until then a signal ends them at once (skyloop.signals.exit_at_once). The others get
 #: Python's own handling back before they run.
@@ -134,9 +134,9 @@ QUICK_EXIT = ("sim", "perception", "policy", "bridge")
 
 
 def _tool(argv: list[str]) -> tuple[str, list[str]] | None:
-    """``(name, rest)`` of a command of ``skyloop.tool_cli`` (``demo``, ``experiment
+    """``(name, rest)`` of a command of ``skyloop.cli.tools`` (``demo``, ``experiment
     run``, ...)."""
-    from skyloop.tool_cli import command_of
+    from skyloop.cli.tools import command_of
 
     return command_of(argv)
 
@@ -162,12 +162,12 @@ def _main(argv: list[str]) -> int:
         default_signals()
     if argv and argv[0] in GENERATED:  # their parsers are generated from dataclasses (tyro)
         args = argparse.Namespace(command=argv[0], rest=argv[1:], func=GENERATED[argv[0]])
-    elif argv and argv[0] in STACK:  # generated too (skyloop.stack_settings)
-        from skyloop.stack_cli import run_node
+    elif argv and argv[0] in STACK:  # generated too (skyloop.cli.stack_settings)
+        from skyloop.cli.stack import run_node
 
         args = argparse.Namespace(command=argv[0], rest=argv[1:],
                                   func=lambda a: run_node(a.command, a.rest))
-    elif (found := _tool(argv)) is not None:  # and these (skyloop.tool_cli)
+    elif (found := _tool(argv)) is not None:  # and these (skyloop.cli.tools)
         args = argparse.Namespace(command=found[0], rest=found[1],
                                   func=lambda a: _cmd_tool(a.command, a))
     else:

@@ -1,7 +1,7 @@
 """``skyloop demo``, ``render``, ``bench``, ``view``, ``viz``, ``record``, ``router``,
 ``certs``, ``plot``, ``log repair`` and ``experiment run|report``: their options generated
-from the dataclasses here with tyro (``skyloop.dataclass_cli.parse``), as the stack's
-commands are (``skyloop.stack_settings``): each default once, ``--help`` with choices and
+from the dataclasses here with tyro (``skyloop.cli.dataclass_cli.parse``), as the stack's
+commands are (``skyloop.cli.stack_settings``): each default once, ``--help`` with choices and
 defaults, a bad value one line naming the flag (exit 2) before anything starts. What
 each runs is imported only when it runs, so ``--help`` stays light."""
 
@@ -19,9 +19,9 @@ import tyro
 from bus.certs import DAYS, NODES
 from bus.session import ENV_CONFIG, ENV_LISTEN, HUB
 from policy.training.settings import ConfigError
-from skyloop.dataclass_cli import parse
-from skyloop.settings_base import Repeated, minutes_or_off
-from skyloop.stack_settings import (
+from skyloop.cli.dataclass_cli import parse
+from skyloop.cli.settings_base import Repeated, minutes_or_off
+from skyloop.cli.stack_settings import (
     DEMO_SEED,
     BusFlags,
     ScenarioFlag,
@@ -119,7 +119,7 @@ class VizCommand(WorldFirstFlag, ViewFlags, BusFlags):
 
 @dataclass(kw_only=True)
 class RecordCommand(WorldFirstFlag, ZenohFlags):
-    """``skyloop record``: the recorder (``bus.record.run_record``)."""
+    """``skyloop record``: the recorder (``bus.log.record.run_record``)."""
 
     out: Annotated[Path, tyro.conf.arg(metavar="DIR")] = Path("logs")
     """directory for run directories"""
@@ -130,7 +130,7 @@ class RecordCommand(WorldFirstFlag, ZenohFlags):
         metavar="NAME", help_behavior_hint="(default: run-<date>-<time>-<pid>)")] = None
     """run directory name"""
     compression: Annotated[Literal["zstd", "lz4", "none"], tyro.conf.arg(help=(
-        "MCAP chunk compression (zstd at bus.log.ZSTD_LEVEL). Measured on real VLP-16 "
+        "MCAP chunk compression (zstd at bus.log.writer.ZSTD_LEVEL). Measured on real VLP-16 "
         "scans of the stack (XYZIR, 4.5 m range), 100-step episodes: 4.8 MB an episode "
         "with zstd, 6.0 with lz4, 7.9 with none; the recorder took ~1,700 scans/s with "
         "zstd and ~2,900 with none flat out (one run each on a loaded 2-core machine; "
@@ -318,7 +318,7 @@ def run_record(args: RecordCommand) -> int:
     """Record until SIGINT/SIGTERM, then print where the log is and its counters."""
     import logging
 
-    from bus.record import run_record as record
+    from bus.log.record import run_record as record
     from bus.session import SessionConfig
     from skyloop.launcher import counters_line
     from skyloop.signals import stop_flag_on_signals
@@ -413,7 +413,7 @@ def run_plot(args: PlotCommand) -> int:
 
 
 def run_log_repair(args: LogRepairCommand) -> int:
-    from bus.log import recover_log
+    from bus.log.writer import recover_log
 
     if not args.path.exists():
         raise FileNotFoundError(f"{args.path}: no such log file or run directory")

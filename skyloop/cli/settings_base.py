@@ -1,6 +1,6 @@
-"""What the commands' settings dataclasses share (``skyloop.stack_settings``,
-``skyloop.tool_cli``, ``skyloop.health``): a base whose checks run on construction,
-the range checks (a ``ConfigError`` naming the flag, which ``skyloop.dataclass_cli.parse``
+"""What the commands' settings dataclasses share (``skyloop.cli.stack_settings``,
+``skyloop.cli.tools``, ``skyloop.health``): a base whose checks run on construction,
+the range checks (a ``ConfigError`` naming the flag, which ``skyloop.cli.dataclass_cli.parse``
 prints as argparse's one line), the ``--vehicle`` flag, repeatable flags and flags whose
 value may be left out. Light: ``python -m skyloop.health`` imports it every few seconds.
 """
