@@ -123,7 +123,7 @@ def test_a_late_step_message_stays_in_its_episode(tmp_path):
                  what="episode 0 received")
         obs.put(m.observation(np.zeros((3, 35), np.float32), 0.3, 0, 3))  # ... then this
         # received before the next START (two sessions: under load it could otherwise
-        # come after it, which is another case than the one tested here)
+        # come after it: test_an_early_step_message_goes_to_its_episode)
         wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()) + 1,
                  what="the late observation received")
         run.actor(1)
@@ -141,6 +141,42 @@ def test_a_late_step_message_stays_in_its_episode(tmp_path):
     assert rep.clean and rep.outside_episodes == 1  # the actor weights
     assert [len(e.topic(keys.OBSERVATION)) for e in eps] == [4, 2]
     assert [int(x.decode().step) for x in eps[0].topic(keys.OBSERVATION)] == [0, 1, 2, 3]
+
+
+def test_an_early_step_message_goes_to_its_episode(tmp_path):
+    """The other order: perception's first observation of episode 1 overtakes the sim's
+    START (the sim's link busy with point clouds). While END 0 is held, a step message
+    naming episode 1 waits for START 1 and is written after it, not into episode 0."""
+    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
+    sim, perception = Bus.open(cfg), Bus.open(cfg)
+    rec_session = open_session(cfg)
+    writer = EpisodeLogWriter(tmp_path, "early")
+    recorder = Recorder(rec_session, writer, end_grace_s=5.0)
+    try:
+        run = FakeRun(sim)
+        obs = perception.publisher(keys.OBSERVATION, "uav1")
+        run.wait_matched()
+        assert obs.wait_matched(10.0)
+        run.episode(0, steps=3)
+        wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()),
+                 what="episode 0 received")
+        obs.put(m.observation(np.ones((3, 35), np.float32), 0.4, 1, 0))  # before START 1
+        wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()) + 1,
+                 what="the early observation received")
+        run.episode(1, steps=2)
+        assert recorder.wait_written(sum(run.sent.values()), timeout=20.0)
+    finally:
+        recorder.stop()
+        sim.close()
+        perception.close()
+        rec_session.close()
+    eps, rep = read_episodes(writer.dir)
+    assert rep.clean and rep.outside_episodes == 0
+    assert [len(e.topic(keys.OBSERVATION)) for e in eps] == [3, 3]
+    assert {int(x.decode().episode) for x in eps[0].topic(keys.OBSERVATION)} == {0}
+    assert {int(x.decode().episode) for x in eps[1].topic(keys.OBSERVATION)} == {1}
+    assert eps[1].messages[0].name == keys.EPISODE  # START first, then the early one
+    assert eps[1].messages[1].name == keys.OBSERVATION
 
 
 class GatedWriter(EpisodeLogWriter):

@@ -170,12 +170,13 @@ class Recorder:
         return taken >= self._capacity
 
     def _run(self) -> None:
-        # vehicle -> (held END, write-by time, messages that go after it)
-        pending: dict[str, tuple[Any, float, list[Any]]] = {}
+        # vehicle -> (held END, write-by time, messages that go after it, the ended
+        # episode, the next episode's step messages that came before its START)
+        pending: dict[str, tuple[Any, float, list[Any], int, list[Any]]] = {}
 
-        def release(vehicle: str) -> None:
-            held, _, after = pending.pop(vehicle)
-            for it in (held, *after):
+        def release(vehicle: str, start: Any = None) -> None:
+            held, _, after, _, early = pending.pop(vehicle)
+            for it in (held, *after, *([start] if start is not None else []), *early):
                 self._write(it)
 
         q, cv = self._q, self._cv
@@ -197,17 +198,25 @@ class Recorder:
                 return
             event = _episode_event(item[0], item[1])
             if event is not None:
-                vehicle, kind = event
+                vehicle, kind, episode = event
                 if vehicle in pending:  # the next START: the held END goes first
+                    if kind == START:
+                        release(vehicle, start=item)  # then START, then what came early
+                        continue
                     release(vehicle)
                 if kind == END:
-                    pending[vehicle] = (item, now + self.end_grace_s, [])
+                    pending[vehicle] = (item, now + self.end_grace_s, [], episode, [])
                     continue
             else:
                 vehicle, step_topic = _step_topic(item[0])
-                if vehicle in pending and not step_topic:  # not the episode's: after END
-                    pending[vehicle][2].append(item)
-                    continue
+                if vehicle in pending:
+                    held = pending[vehicle]
+                    if not step_topic:  # not the episode's: after END
+                        held[2].append(item)
+                        continue
+                    if _episode_of(item[0], item[1]) not in (None, held[3]):
+                        held[4].append(item)  # the next episode's, ahead of its START
+                        continue
             self._write(item)
 
     def _write(self, item: tuple[str, bytes, int]) -> None:
@@ -323,21 +332,36 @@ def _parsed(key_expr: str) -> tuple[str, str, str] | None:
         return None
 
 
-def _episode_event(key_expr: str, data: bytes) -> tuple[str, int] | None:
-    """(vehicle, START/END) if this is an episode event that decodes, else None."""
+def _episode_event(key_expr: str, data: bytes) -> tuple[str, int, int] | None:
+    """(vehicle, START/END, episode) if this is an episode event that decodes, else None."""
     parsed = _parsed(key_expr)
     if parsed is None or parsed[1] != keys.EPISODE:
         return None
     vehicle = parsed[0]
     try:
-        event = int(decode(parsed[2], data).event)
+        msg = decode(parsed[2], data)
+        event, episode = int(msg.event), int(msg.episode)
     except Exception:  # noqa: BLE001 - not an event; _write counts what is wrong
         return None
-    return (vehicle, event) if event in (START, END) else None
+    return (vehicle, event, episode) if event in (START, END) else None
+
+
+def _episode_of(key_expr: str, data: bytes) -> int | None:
+    """The episode a step message names (observation, clock, step record), None for a
+    message that names none or does not decode. Perception's observation comes on its own
+    link and can overtake the sim's START of its episode: this places it."""
+    parsed = _parsed(key_expr)
+    if parsed is None or parsed[1] not in _NAMES_EPISODE:
+        return None
+    try:
+        return int(decode(parsed[2], data).episode)
+    except Exception:  # noqa: BLE001 - _write counts what is wrong
+        return None
 
 
 _STEP_TOPICS = frozenset((keys.CLOCK, keys.ODOM, keys.TRUTH, keys.LIDAR_POINTS,
                           keys.OBSERVATION, keys.CMD_VEL, keys.STEP_RECORD))
+_NAMES_EPISODE = frozenset((keys.OBSERVATION, keys.CLOCK, keys.STEP_RECORD))
 
 
 def _step_topic(key_expr: str) -> tuple[str | None, bool]:
