@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 from collections import Counter
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -103,25 +104,39 @@ def test_recorder_writes_every_topic(tmp_path):
     assert counts == {keys.ros_topic("uav1", t): n for t, n in run.sent.items()}
 
 
-def test_a_late_step_message_stays_in_its_episode(tmp_path):
-    """Two processes: the sim's END overtakes perception's last observation (separate
-    Zenoh links). The recorder holds the END until the next START, so the observation is
-    in its episode, and what is not a step topic (actor weights) stays between episodes;
-    the last episode's END is written within the grace time."""
+@contextmanager
+def sim_and_perception(tmp_path: Path, name: str, end_grace_s: float):
+    """A recorder and two publishing sessions on separate Zenoh links (the sim's run and
+    perception's observation publisher), both matched; episode 0 (3 steps) recorded.
+    Yields (recorder, writer, run, obs); closes everything after."""
     cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
     sim, perception = Bus.open(cfg), Bus.open(cfg)
     rec_session = open_session(cfg)
-    writer = EpisodeLogWriter(tmp_path, "late")
-    recorder = Recorder(rec_session, writer, end_grace_s=2.0)
+    writer = EpisodeLogWriter(tmp_path, name)
+    recorder = Recorder(rec_session, writer, end_grace_s=end_grace_s)
     try:
         run = FakeRun(sim)
         obs = perception.publisher(keys.OBSERVATION, "uav1")
         run.wait_matched()
         assert obs.wait_matched(10.0)
-        run.episode(0, steps=3)  # its END is now on the wire ...
+        run.episode(0, steps=3)  # its END is now on the wire
         wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()),
                  what="episode 0 received")
-        obs.put(m.observation(np.zeros((3, 35), np.float32), 0.3, 0, 3))  # ... then this
+        yield recorder, writer, run, obs
+    finally:
+        recorder.stop()
+        sim.close()
+        perception.close()
+        rec_session.close()
+
+
+def test_a_late_step_message_stays_in_its_episode(tmp_path):
+    """Two processes: the sim's END overtakes perception's last observation (separate
+    Zenoh links). The recorder holds the END until the next START, so the observation is
+    in its episode, and what is not a step topic (actor weights) stays between episodes;
+    the last episode's END is written within the grace time."""
+    with sim_and_perception(tmp_path, "late", end_grace_s=2.0) as (recorder, writer, run, obs):
+        obs.put(m.observation(np.zeros((3, 35), np.float32), 0.3, 0, 3))  # after END 0
         # received before the next START (two sessions: under load it could otherwise
         # come after it: test_an_early_step_message_goes_to_its_episode)
         wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()) + 1,
@@ -132,11 +147,6 @@ def test_a_late_step_message_stays_in_its_episode(tmp_path):
         assert recorder.wait_written(total - 1, timeout=20.0)  # all but the held last END
         assert recorder.counters()["episodes_ended"] == 1
         assert recorder.wait_written(total, timeout=20.0)  # the grace time let it go
-    finally:
-        recorder.stop()
-        sim.close()
-        perception.close()
-        rec_session.close()
     eps, rep = read_episodes(writer.dir)
     assert rep.clean and rep.outside_episodes == 1  # the actor weights
     assert [len(e.topic(keys.OBSERVATION)) for e in eps] == [4, 2]
@@ -147,29 +157,12 @@ def test_an_early_step_message_goes_to_its_episode(tmp_path):
     """The other order: perception's first observation of episode 1 overtakes the sim's
     START (the sim's link busy with point clouds). While END 0 is held, a step message
     naming episode 1 waits for START 1 and is written after it, not into episode 0."""
-    cfg = SessionConfig(hub=f"tcp/127.0.0.1:{free_port()}")
-    sim, perception = Bus.open(cfg), Bus.open(cfg)
-    rec_session = open_session(cfg)
-    writer = EpisodeLogWriter(tmp_path, "early")
-    recorder = Recorder(rec_session, writer, end_grace_s=5.0)
-    try:
-        run = FakeRun(sim)
-        obs = perception.publisher(keys.OBSERVATION, "uav1")
-        run.wait_matched()
-        assert obs.wait_matched(10.0)
-        run.episode(0, steps=3)
-        wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()),
-                 what="episode 0 received")
+    with sim_and_perception(tmp_path, "early", end_grace_s=5.0) as (recorder, writer, run, obs):
         obs.put(m.observation(np.ones((3, 35), np.float32), 0.4, 1, 0))  # before START 1
         wait_for(lambda: recorder.counters()["received"] == sum(run.sent.values()) + 1,
                  what="the early observation received")
         run.episode(1, steps=2)
         assert recorder.wait_written(sum(run.sent.values()), timeout=20.0)
-    finally:
-        recorder.stop()
-        sim.close()
-        perception.close()
-        rec_session.close()
     eps, rep = read_episodes(writer.dir)
     assert rep.clean and rep.outside_episodes == 0
     assert [len(e.topic(keys.OBSERVATION)) for e in eps] == [3, 3]
