@@ -22,7 +22,9 @@ and was skipped when training from the log). The writer thread holds a vehicle's
 until that vehicle's next START arrives or ``end_grace_s`` (0.25 s) passes; step topics
 (clock, odometry, truth, scan, observation, setpoint, step record) arriving meanwhile are
 written before it, anything else (status, actor weights, ...) right after it, so between
-episodes as before; stopping writes what is held.
+episodes as before; a step message naming the next episode (perception's first
+observation can overtake the sim's START the same way) waits for that START and is
+written right after it; stopping writes what is held.
 
 The log's 3D view (``view``, a :class:`~bus.ros.view.RosView`; ``skyloop record`` has
 one unless ``--no-ros-view``): the writer thread hands each message it writes to the
@@ -346,6 +348,10 @@ def _episode_event(key_expr: str, data: bytes) -> tuple[str, int, int] | None:
     return (vehicle, event, episode) if event in (START, END) else None
 
 
+#: step topics whose messages name their episode
+_NAMES_EPISODE = frozenset((keys.OBSERVATION, keys.CLOCK, keys.STEP_RECORD))
+
+
 def _episode_of(key_expr: str, data: bytes) -> int | None:
     """The episode a step message names (observation, clock, step record), None for a
     message that names none or does not decode. Perception's observation comes on its own
@@ -361,7 +367,6 @@ def _episode_of(key_expr: str, data: bytes) -> int | None:
 
 _STEP_TOPICS = frozenset((keys.CLOCK, keys.ODOM, keys.TRUTH, keys.LIDAR_POINTS,
                           keys.OBSERVATION, keys.CMD_VEL, keys.STEP_RECORD))
-_NAMES_EPISODE = frozenset((keys.OBSERVATION, keys.CLOCK, keys.STEP_RECORD))
 
 
 def _step_topic(key_expr: str) -> tuple[str | None, bool]:
