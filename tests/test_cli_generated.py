@@ -1,5 +1,5 @@
 """Command lines generated from config dataclasses (tyro, ``skyloop.cli.dataclass_cli``):
-``skyloop train`` from ``policy.training.train.TrainConfig``, ``skyloop eval`` from
+``skyloop train`` from ``policy.training.settings.TrainConfig``, ``skyloop eval`` from
 ``policy.training.evaluate.EvalConfig``. The defaults shown and used are the dataclass's, bad
 values are one-line errors naming the flag (exit 2) before anything starts, and a
 command line gives the config it says."""

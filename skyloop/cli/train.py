@@ -26,7 +26,7 @@ __all__ = ["TrainCommand", "main", "parse_train", "run_train"]
 DESCRIPTION = ("Train TD3/DDPG with a goal reward in the in-process env (policy.training.train), "
                "or learn offline from episode logs with --from-logs (policy.logs.offline).")
 
-RUN_HELP = "the run (policy.training.train.TrainConfig; grid files set the same fields by name)"
+RUN_HELP = "the run (policy.training.settings.TrainConfig; grid files set the same fields by name)"
 
 
 @dataclass(kw_only=True)

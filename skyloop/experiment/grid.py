@@ -1,7 +1,7 @@
 """Grid files: which ``skyloop train`` runs an experiment is made of (pure, no Ray).
 
 A grid file is TOML; every trial is one ``skyloop train`` run
-(``policy.training.train.TrainConfig``) and the grid is the product of its tasks, methods
+(``policy.training.settings.TrainConfig``) and the grid is the product of its tasks, methods
 and seeds::
 
     name = "paper_static"
