@@ -82,6 +82,22 @@ def test_a_bad_grid_names_the_file_and_the_field(tmp_path, old, new, field):
     assert str(path) in str(err.value) and field in str(err.value)
 
 
+REPO = Path(__file__).resolve().parents[1]
+COMMITTED_GRIDS = sorted(p.relative_to(REPO) for d in ("experiments", "experiments/general_state")
+                         for p in (REPO / d).glob("*.toml"))
+
+
+@pytest.mark.parametrize("path", COMMITTED_GRIDS, ids=str)
+def test_the_committed_grid_files_load_with_one_arithmetic(path):
+    """The grid files under experiments/ load as the runner loads them, and each names its
+    precision, so that its trials share one arithmetic on any machine (``auto`` would
+    follow the machine's bfloat16 units)."""
+    grid = load_grid(REPO / path)
+    assert grid.trials
+    assert len({t.config.precision for t in grid.trials}) == 1
+    assert grid.trials[0].config.precision in ("fp32", "bf16")
+
+
 def test_a_bad_grid_is_a_one_line_cli_error_before_anything_runs(tmp_path):
     path = write(tmp_path, GOOD.replace('"td3+abr"', '"td3+xyz"'))
     out = tmp_path / "out"
