@@ -53,6 +53,17 @@ class _Done(Exception):
     """Raised from the episode callback once enough steps are timed."""
 
 
+def bench_config(sync: bool, seed: int = 0, threads: int = 1, precision: str | None = None,
+                 pipeline: str | None = None) -> TrainConfig:
+    """The training run every row times: TD3+ABR on the valley, START random steps, no
+    checkpoints, no end (``precision``/``pipeline`` None: ``TrainConfig``'s default)."""
+    return TrainConfig(algo="td3", reward="abr", scenario="valley", episodes=10**6,
+                       seed=seed, start_steps=START, buffer_size=100_000,
+                       checkpoint_every=10**6, sync=sync, threads=threads, progress=False,
+                       **({} if precision is None else {"precision": precision}),
+                       **({} if pipeline is None else {"pipeline": pipeline}))
+
+
 def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str | None = None,
           pipeline: str | None = None) -> float:
     """Env steps/s of a Trainer run between SETTLE and SETTLE + steps updated steps
@@ -65,12 +76,7 @@ def _ours(sync: bool, steps: int, threads: int, seed: int, precision: str | None
             raise _Done
 
     with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as tmp:
-        cfg = TrainConfig(algo="td3", reward="abr", scenario="valley", episodes=10**6,
-                          seed=seed, start_steps=START, buffer_size=100_000,
-                          checkpoint_every=10**6, sync=sync, threads=threads,
-                          progress=False,
-                          **({} if precision is None else {"precision": precision}),
-                          **({} if pipeline is None else {"pipeline": pipeline}))
+        cfg = bench_config(sync, seed, threads, precision, pipeline)
         try:
             Trainer(cfg, Path(tmp)).run(on_episode=on_episode)
         except _Done:

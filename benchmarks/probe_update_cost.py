@@ -1,9 +1,9 @@
 """Probe (issue 9): what one TD3 update costs inside the trainer against the same update alone.
 
 The bench_train rows time whole training loops; this times ``TD3.update`` itself, wrapped
-with a clock, inside a real ``Trainer`` run (TD3+ABR on the valley, 5,000 env steps, the
-first 500 updates dropped) in the ``--sync`` or the default (parallel) mode, and then the
-same agent configuration alone on random mini-batches (``alone``). Run:
+with a clock, inside a real ``Trainer`` run (``bench_train``'s run: TD3+ABR on the valley,
+5,000 env steps, the first 500 updates dropped) in the ``--sync`` or the default
+(parallel) mode, and the same update alone (``alone``, on ``bench_td3``'s buffer). Run:
 
     python -m benchmarks.probe_update_cost {sync,parallel,alone} [--precision bf16|fp32]
 """
@@ -19,8 +19,9 @@ from pathlib import Path
 import torch
 
 import policy.algorithms.td3 as td3
-from policy.algorithms.replay import Batch
-from policy.training.train import TrainConfig, Trainer
+from benchmarks.bench_td3 import BATCH, _fill_ours
+from benchmarks.bench_train import bench_config
+from policy.training.train import Trainer
 
 STEPS, DROP = 5000, 500
 
@@ -47,11 +48,9 @@ def in_trainer(sync: bool, precision: str) -> list[float]:
     td3.TD3.update = timed
     try:
         with tempfile.TemporaryDirectory() as tmp:
-            cfg = TrainConfig(algo="td3", reward="abr", scenario="valley", episodes=10**6,
-                              start_steps=1000, buffer_size=100_000, checkpoint_every=10**6,
-                              sync=sync, precision=precision, progress=False)
             try:
-                Trainer(cfg, Path(tmp)).run(on_episode=on_episode)
+                Trainer(bench_config(sync, precision=precision), Path(tmp)).run(
+                    on_episode=on_episode)
             except _Done:
                 pass
     finally:
@@ -60,19 +59,15 @@ def in_trainer(sync: bool, precision: str) -> list[float]:
 
 
 def alone(precision: str, n: int = 4000) -> list[float]:
-    """Durations (s) of the same update on random mini-batches from a 100,000-row table."""
+    """Durations (s) of the same update on mini-batches of ``bench_td3``'s replay buffer
+    (10,000 transitions of random observations, sampled as in training)."""
     torch.set_num_threads(1)
-    cfg = TrainConfig(precision=precision)
-    agent = td3.TD3(td3.TD3Config(precision=cfg.precision))
-    rows, b = 100_000, agent.config.batch_size
-    s = torch.rand(rows, agent.config.state_dim) * 2 - 1
-    a = (torch.rand(rows, agent.config.action_dim) * 2 - 1) * agent.config.max_action
-    r = torch.randn(rows, 1)
+    agent = td3.TD3(td3.TD3Config(batch_size=BATCH, precision=precision))
+    buf = _fill_ours(10_000)
     durations = []
     with td3.flush_denormals():
         for _ in range(n + DROP):
-            idx = torch.randint(0, rows - 1, (b,))
-            batch = Batch(s[idx], a[idx], r[idx], s[idx + 1], torch.zeros(b, 1))
+            batch = buf.sample(BATCH)
             t = time.perf_counter()
             agent.update(batch)  # the actor steps every policy_delay-th update, as in training
             durations.append(time.perf_counter() - t)
