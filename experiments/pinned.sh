@@ -2,6 +2,7 @@
 # Run a grid from a worktree pinned at one commit, and bring its finished trials home.
 #
 #   experiments/pinned.sh start COMMIT GRID.toml OUT [MAX_CONCURRENT]
+#   experiments/pinned.sh queue COMMIT GRID.toml OUT [COMMIT GRID.toml OUT ...]
 #   experiments/pinned.sh collect COMMIT OUT
 #
 # start: makes ../exp-<sha> (git worktree at COMMIT, its own .venv) if it is missing,
@@ -11,6 +12,11 @@
 #   change the code under the grid, and the rerun continues it: finished trials are
 #   skipped, started ones resume from their checkpoint (in the worktree only: a machine
 #   that loses the worktree loses the trials in progress, not the finished ones).
+# queue: the grids one after another in the background (two trials at a time each),
+#   each as `start` runs it, each once no other `skyloop experiment run` is running (so a
+#   queue started beside a running grid waits for it); the machine never idles between
+#   grids. Log: ../grid-queue.log. Every argument is checked before anything starts.
+#   `run` (same arguments as start) is one grid in the foreground; queue calls it.
 # collect: copies every finished trial (result.json) of the worktree's OUT into main's,
 #   without checkpoints or TensorBoard events (experiments/.gitignore keeps them out of
 #   git anyway), with runs.json and grid.toml; then write the report on main:
@@ -19,26 +25,36 @@
 # Example (issue 10's static grid at the commit it began on):
 #   experiments/pinned.sh start ed39746 experiments/paper_static.toml experiments/paper_static
 set -euo pipefail
+self=$(cd "$(dirname "$0")" && pwd)/$(basename "$0")
 cd "$(dirname "$0")/.."
 main=$(pwd)
+# what queue waits on, and how often it looks (the tests set both)
+wait_pattern=${PINNED_WAIT_PATTERN:-m skyloop experiment ru[n] }
+poll_s=${PINNED_POLL_S:-30}
 
-usage() { sed -n '3,4p' "$0" | sed 's/^# *//' >&2; exit 2; }
-[ $# -ge 3 ] || usage
-cmd=$1 commit=$2
-sha=$(git rev-parse --short=7 "$commit^{commit}" 2>/dev/null) \
-    || { echo "pinned.sh: COMMIT '$commit' is not a commit of this repository" >&2; exit 2; }
-wt=$(dirname "$main")/exp-$sha
+usage() { sed -n '4,6p' "$self" | sed 's/^# *//' >&2; exit 2; }
+die() { echo "pinned.sh: $*" >&2; exit 2; }
 
-case $cmd in
-start)
-    [ $# -ge 4 ] || usage
-    grid=$3 out=${4%/} conc=${5:-2}
-    git cat-file -e "$sha:$grid" 2>/dev/null \
-        || { echo "pinned.sh: GRID '$grid': no such file at commit $sha" >&2; exit 2; }
-    if pgrep -f "experiment run $grid --out $out( |\$)" >/dev/null; then
-        echo "pinned.sh: a grid with --out $out is already running (pgrep -af 'experiment run')" >&2
-        exit 2
-    fi
+# short sha of COMMIT, or exit 2 naming it
+sha_of() {
+    git rev-parse --short=7 "$1^{commit}" 2>/dev/null \
+        || die "COMMIT '$1' is not a commit of this repository"
+}
+
+# COMMIT GRID: exit 2 unless GRID is a file at COMMIT
+check_grid() {
+    local sha
+    sha=$(sha_of "$1")
+    git cat-file -e "$sha:$2" 2>/dev/null || die "GRID '$2': no such file at commit $sha"
+}
+
+running() { pgrep -f "experiment run $1 --out $2( |\$)" >/dev/null; }
+
+# COMMIT GRID OUT CONC: lay out the worktree and OUT, then run the grid in the foreground
+run_grid() {
+    local sha wt grid=$2 out=${3%/} conc=$4
+    sha=$(sha_of "$1")
+    wt=$(dirname "$main")/exp-$sha
     if [ ! -d "$wt" ]; then
         git worktree prune
         git worktree add --detach "$wt" "$sha" >/dev/null
@@ -54,14 +70,50 @@ start)
     mkdir -p "$wt/$out"
     printf '# worktree only: keep checkpoints visible to git (see pinned.sh)\n!checkpoint.pt\n' \
         >"$wt/$out/.gitignore"
-    log=$(dirname "$main")/grid-$(basename "$out").log
-    (cd "$wt" && setsid nohup nice -n 19 .venv/bin/python -m skyloop experiment run \
-        "$grid" --out "$out" --max-concurrent "$conc" >>"$log" 2>&1 </dev/null &)
-    echo "pinned.sh: $grid running from $wt (commit $sha) -> $wt/$out; log $log"
+    echo "pinned.sh: $(date -u +%FT%TZ) $grid from $wt (commit $sha) -> $wt/$out"
+    cd "$wt" && nice -n 19 .venv/bin/python -m skyloop experiment run "$grid" --out "$out" \
+        --max-concurrent "$conc"
+}
+
+[ $# -ge 3 ] || usage
+cmd=$1
+case $cmd in
+run|start)
+    [ $# -ge 4 ] || usage
+    check_grid "$2" "$3"
+    running "$3" "${4%/}" && die "a grid with --out ${4%/} is already running (pgrep -af 'experiment run')"
+    if [ "$cmd" = run ]; then
+        run_grid "$2" "$3" "$4" "${5:-2}"
+        exit
+    fi
+    log=$(dirname "$main")/grid-$(basename "${4%/}").log
+    (setsid nohup bash "$self" run "$2" "$3" "$4" "${5:-2}" >>"$log" 2>&1 </dev/null &)
+    echo "pinned.sh: $3 running from $(dirname "$main")/exp-$(sha_of "$2") (commit $(sha_of "$2")); log $log"
+    ;;
+queue)
+    shift
+    [ $(($# % 3)) -eq 0 ] || die "queue takes COMMIT GRID.toml OUT triples, got $# arguments"
+    args=("$@")
+    for ((i = 0; i < $#; i += 3)); do check_grid "${args[i]}" "${args[i+1]}"; done
+    log=$(dirname "$main")/grid-queue.log
+    # one grid at a time: wait while any grid runs (this queue's or one started before it)
+    # (the pattern goes by the environment: in the queue's own command line, pgrep would
+    # find it there)
+    (export PINNED_WAIT_PATTERN=$wait_pattern PINNED_POLL_S=$poll_s
+     setsid nohup bash -c '
+        script=$1; shift
+        while [ $# -ge 3 ]; do
+            while pgrep -f "$PINNED_WAIT_PATTERN" >/dev/null; do sleep "$PINNED_POLL_S"; done
+            bash "$script" run "$1" "$2" "$3" 2 || echo "pinned.sh: $2 ended with status $?"
+            shift 3
+        done' queue "$self" "$@" >>"$log" 2>&1 </dev/null &)
+    echo "pinned.sh: queued $(($# / 3)) grid(s); log $log"
     ;;
 collect)
+    sha=$(sha_of "$2")
+    wt=$(dirname "$main")/exp-$sha
     out=${3%/}
-    [ -d "$wt/$out" ] || { echo "pinned.sh: $wt/$out: no such directory" >&2; exit 2; }
+    [ -d "$wt/$out" ] || die "$wt/$out: no such directory"
     n=0
     for result in "$wt/$out"/*/result.json; do
         [ -f "$result" ] || continue

@@ -1,12 +1,18 @@
 """experiments/pinned.sh: a grid's finished trials come home without checkpoints, and bad
 arguments are one line with exit 2. The script runs in a small git repository of its own
 (a copy of the script, one commit) beside a worktree directory laid out as a running grid
-leaves it; `start` is exercised only on its refusals (it builds a venv and runs a grid)."""
+leaves it; `start` is exercised only on its refusals (it builds a venv and runs a grid), and
+`queue` on its refusals and its wait for a running grid (the grid it then starts fails at
+once: the small repository has no Makefile to build a venv with)."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
+import sys
+import time
+import uuid
 from pathlib import Path
 
 SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "pinned.sh"
@@ -28,9 +34,20 @@ def repo_with_script(tmp_path: Path) -> tuple[Path, str]:
     return main, git(main, "rev-parse", "--short=7", "HEAD")
 
 
-def pinned(main: Path, *args: str) -> subprocess.CompletedProcess:
+def pinned(main: Path, *args: str, env: dict[str, str] | None = None
+           ) -> subprocess.CompletedProcess:
     return subprocess.run(["bash", "experiments/pinned.sh", *args], cwd=main,
-                          capture_output=True, text=True, timeout=60)
+                          capture_output=True, text=True, timeout=60,
+                          env={**os.environ, **(env or {})})
+
+
+def wait_for(check, timeout: float = 20.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if check():
+            return True
+        time.sleep(0.1)
+    return False
 
 
 def test_collect_copies_finished_trials_without_checkpoints(tmp_path):
@@ -64,9 +81,41 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path):
         (("start", "HEAD", "experiments/missing.toml", "experiments/g"),
          f"GRID 'experiments/missing.toml': no such file at commit {sha}"),
         (("bogus", "HEAD", "x"), "pinned.sh start COMMIT GRID.toml OUT"),
+        (("run", "HEAD", "experiments/missing.toml", "experiments/g"),
+         f"GRID 'experiments/missing.toml': no such file at commit {sha}"),
+        (("queue", "HEAD", "experiments/g.toml"), "queue takes COMMIT GRID.toml OUT triples"),
+        (("queue", "HEAD", "experiments/g.toml", "experiments/g",
+          "nosuchcommit", "experiments/g.toml", "experiments/h"),
+         "COMMIT 'nosuchcommit' is not a commit"),
+        (("queue", "HEAD", "experiments/g.toml", "experiments/g",
+          "HEAD", "experiments/missing.toml", "experiments/h"),
+         f"GRID 'experiments/missing.toml': no such file at commit {sha}"),
     ]
     for args, message in cases:
         r = pinned(main, *args)
         assert r.returncode == 2, (args, r.stdout, r.stderr)
         assert message in r.stderr, (args, r.stderr)
     assert not (tmp_path / f"exp-{sha}").exists()  # a refused start made no worktree
+    assert not (tmp_path / "grid-queue.log").exists()  # a refused queue started nothing
+
+
+def test_queue_waits_for_the_running_grid_then_starts_the_next(tmp_path):
+    main, sha = repo_with_script(tmp_path)
+    marker = f"pinned-test-grid-{uuid.uuid4().hex}"  # stands for a running grid's command line
+    grid = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", marker])
+    log = tmp_path / "grid-queue.log"
+    try:
+        r = pinned(main, "queue", "HEAD", "experiments/g.toml", "experiments/g",
+                   env={"PINNED_WAIT_PATTERN": marker, "PINNED_POLL_S": "0.2"})
+        assert r.returncode == 0, r.stderr
+        assert "queued 1 grid(s)" in r.stdout
+        time.sleep(1.5)
+        assert not (tmp_path / f"exp-{sha}").exists()  # still waiting
+    finally:
+        grid.kill()
+        grid.wait()
+    # the grid's turn: its worktree is laid out, and building its venv fails here
+    assert wait_for(lambda: log.exists() and "ended with status" in log.read_text()), \
+        log.read_text() if log.exists() else "no log"
+    assert (tmp_path / f"exp-{sha}" / "experiments" / "g.toml").exists()
+    assert "experiments/g.toml ended with status 2" in log.read_text()
