@@ -8,8 +8,8 @@ env id (``policy.training.gym_task.GymTask``: frames stacked the same way, an ep
 
 Per env step: act (uniform random for the first ``start_steps``, then the actor plus
 Gaussian exploration noise), step the env, store the transition with its *base* reward
-(terminal only on collision/goal, never on the 300-step truncation), and one agent
-update per env step. Per episode end: the goal-reward variant rewrites the episode's
+(terminal only on collision/goal, never on the 300-step truncation), and, once
+``start_steps`` transitions are stored, one agent update. Per episode end: the goal-reward variant rewrites the episode's
 rewards in the replay buffer (TR/NGR/EGR/ABR), a CSV row is written, TensorBoard scalars
 are logged (below). ``envs`` envs are stepped in turn (``policy.training.collector.Collector``),
 each its own stream of episodes in the replay buffer.
@@ -37,8 +37,9 @@ Two loops over the same bookkeeping:
   one env a resumed run continues exactly as an uninterrupted one.
 - parallel (the default): the envs run in a collector process while this process
   updates (``policy.training.collector``); updates per env step stay 1 on average, the collector
-  at most ``max_lead`` steps ahead; ``pipeline`` "target" (the default) gives the
-  learner a second thread for the next TD targets (``policy.algorithms.pipeline``). The same
+  at most ``max_lead`` steps ahead; the learner is one thread (``pipeline`` "off", the
+  default), or two with ``pipeline`` "target" (a second thread computes the next TD
+  targets, ``policy.algorithms.pipeline``). The same
   episode seeds, network initialisation and random-action phase as ``sync``; *not*
   reproducible: which actor version chose each action after the random phase depends on
   timing, and so does everything after it.

@@ -27,8 +27,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
-from policy.training.settings import ConfigError
-from policy.training.train import TrainConfig
+from policy.training.settings import ConfigError, TrainConfig
 
 __all__ = ["Grid", "GridError", "Trial", "load_grid"]
 
