@@ -183,5 +183,5 @@ def test_abr_rewrites_buffer_range():
     abr.taus = [E1]
     abr.on_episode_end(buf, ep, reached_goal=True)  # R_1 = 3 -> {0, 3}, m = 1
     np.testing.assert_array_equal(buf.indices(ep), [5, 6, 7, 0])
-    np.testing.assert_allclose(buf.episode_rewards(ep), [1.1, 1.1, 1.1, 0.5])
+    np.testing.assert_allclose(buf.stored_rewards(ep), [1.1, 1.1, 1.1, 0.5])
     np.testing.assert_allclose(buf.episode_base_rewards(ep), base)

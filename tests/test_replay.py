@@ -212,9 +212,9 @@ def test_add_and_sample_shapes():
 def test_truncation_is_not_terminal():
     buf = ReplayBuffer(capacity=10)
     ep = _fill(buf, [0.1] * 4, terminal_last=False)  # time limit: episode ends, not terminal
-    np.testing.assert_array_equal(buf.episode_dones(ep), [0, 0, 0, 0])
+    np.testing.assert_array_equal(buf.stored_dones(ep), [0, 0, 0, 0])
     ep = _fill(buf, [0.1] * 3, terminal_last=True)  # collision/goal
-    np.testing.assert_array_equal(buf.episode_dones(ep), [0, 0, 1])
+    np.testing.assert_array_equal(buf.stored_dones(ep), [0, 0, 1])
 
 
 def test_episode_slots_and_wrap_around():
@@ -253,7 +253,7 @@ def test_variants_rewrite_from_base():
     egr = EqualGoalReward()
     egr.on_episode_end(buf, ep, True)
     egr.on_episode_end(buf, ep, True)
-    np.testing.assert_allclose(buf.episode_rewards(ep), [2.0, 3.0])
+    np.testing.assert_allclose(buf.stored_rewards(ep), [2.0, 3.0])
     np.testing.assert_allclose(buf.episode_base_rewards(ep), [1.0, 2.0])
     with pytest.raises(ValueError):
         buf.set_episode_rewards(ep, np.zeros(3))
@@ -420,7 +420,7 @@ def test_streams_keep_separate_episodes():
     np.testing.assert_array_equal(buf.episode_states(ea), a.states[:4])
     np.testing.assert_array_equal(buf.episode_states(eb), b.states[:3])
     np.testing.assert_array_equal(buf.episode_base_rewards(eb), [10, 11, 12])
-    np.testing.assert_array_equal(buf.episode_dones(eb), [0, 0, 1])
+    np.testing.assert_array_equal(buf.stored_dones(eb), [0, 0, 1])
     TraditionalReward().on_episode_end(buf, eb, reached_goal=True)
     np.testing.assert_allclose(buf._reward[:7, 0], [0, 10, 1, 11, 2, 62, 3])
 

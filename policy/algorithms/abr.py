@@ -21,9 +21,10 @@ Choices where the paper is silent or ambiguous (abr-method.md), marked **[choice
 
 - **[choice]** The CNN (paper Fig. 3.3): Conv1d over the frame axis with the 35
   attributes as channels (35 -> 32 filters, kernel 2) -> ReLU -> flatten (32 x 2 = 64)
-  -> Linear(64 -> 20) -> ReLU. Its weights are drawn once from a fixed seed
-  (``ABRConfig.seed``) with PyTorch's default layer initialisation and never trained
-  (the paper does not train it); they are saved in ``state_dict``.
+  -> Linear(64 -> 20) -> ReLU. Its weights are drawn once from ``ABRConfig.seed`` (in
+  training the run's seed, ``policy.training.train``) with PyTorch's default layer
+  initialisation and never trained (the paper does not train it); they are saved in
+  ``state_dict``.
 - **[choice]** Similarity: eq. 3.4 / Algorithm 3.1 print a sum over the history; we use
   the maximum cosine similarity over stored patterns, and reuse the argmax pattern.
   Cosine similarity of two all-zero feature vectors (possible after the final ReLU) is
@@ -73,7 +74,7 @@ class ABRConfig:
     p_add_reward: float = 0.1
     conv_filters: int = 32
     conv_kernel: int = 2
-    seed: int = 0  # [choice] fixed seed of the untrained CNN's weights
+    seed: int = 0  # [choice] seed of the untrained CNN's weights (training: the run's)
 
 
 @dataclass
@@ -219,11 +220,11 @@ class AugmentativeBackwardReward(GoalReward):
             return rewards
         last = np.arange(1, n_groups + 1) * p - 1  # 0-based index of transition l
         taus = self.features(np.asarray(states)[last])
-        base64 = rewards.copy()
+        base = rewards.copy()  # the group returns are of the base rewards
         for k in range(1, n_groups + 1):
             first = (k - 1) * p
             j, new, zeta = self.match(taus[k - 1])
-            ret = math.floor(float(base64[first : first + p].sum()))
+            ret = math.floor(float(base[first : first + p].sum()))
             m = self.rank(j, ret)
             bonus = m * self.config.p_add_reward
             rewards[first : first + p] += bonus

@@ -158,7 +158,7 @@ class ReplayBuffer:
             untouched pages cost no memory.
         state_shape: shape of one state, (p_frames, attributes) = (3, 35); a 1-D shape
             is one frame.
-        action_dim: 4 (l_x, l_y, l_z, a_z).
+        action_dim: numbers per action (the UAV task's 4: l_x, l_y, l_z, a_z).
         seed: seed of the sampling generator.
     """
 
@@ -166,7 +166,7 @@ class ReplayBuffer:
         self,
         capacity: int = 1_000_000,
         state_shape: tuple[int, ...] = TASK.state_shape,
-        action_dim: int = 4,
+        action_dim: int = TASK.action_dim,
         seed: int = 0,
     ) -> None:
         if capacity < 1:
@@ -377,7 +377,8 @@ class ReplayBuffer:
     def episode_base_rewards(self, episode: Episode) -> np.ndarray:
         return self._base_reward[self.indices(episode)].copy()
 
-    def episode_rewards(self, episode: Episode) -> np.ndarray:
+    def stored_rewards(self, episode: Episode) -> np.ndarray:
+        """The rewards the episode's transitions hold now (after its goal reward)."""
         return self._reward[self.indices(episode), 0].copy()
 
     def episode_states(self, episode: Episode) -> np.ndarray:
@@ -385,7 +386,8 @@ class ReplayBuffer:
         rows = self._rows[0, self.indices(episode)]
         return self._frames[rows].reshape(-1, *self.state_shape)
 
-    def episode_dones(self, episode: Episode) -> np.ndarray:
+    def stored_dones(self, episode: Episode) -> np.ndarray:
+        """The episode's terminal flags d_i as stored."""
         return self._done[self.indices(episode), 0].copy()
 
     def set_episode_rewards(self, episode: Episode, rewards: np.ndarray) -> None:

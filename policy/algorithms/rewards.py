@@ -173,7 +173,7 @@ class GoalReward:
 
     Subclasses implement ``episode_rewards``: the full reward sequence of one finished
     episode computed from its base rewards (and, for ABR, its states). ``on_episode_end``
-    writes that sequence back into the replay buffer over the episode's index range.
+    writes that sequence back into the replay buffer into the episode's slots.
     Episodes that did not reach the goal keep their base rewards in every variant.
     """
 

@@ -59,6 +59,8 @@ __all__ = ["TD3Config", "TD3", "FusedAdam", "LowPrecisionCopy", "PRECISIONS", "b
            "flush_denormals", "load_actor", "make_adam", "soft_update"]
 
 ACTOR_FORMAT = "skyloop-actor-1"
+# fields older checkpoints' agent configs hold, now the training loop's (TrainConfig)
+LEGACY_CONFIG_KEYS = frozenset({"start_steps", "buffer_size"})
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16}
 
 
@@ -83,8 +85,6 @@ class TD3Config:
     exploration_noise: float | None = None  # -> 0.1 * max_action
     policy_delay: int = 2
     batch_size: int = 100
-    start_steps: int = 10_000  # [choice] uniform random actions first
-    buffer_size: int = 1_000_000
     seed: int = 0
     precision: str = "fp32"  # "bf16": the update's matmuls in bfloat16 (module docstring)
 
@@ -268,7 +268,7 @@ class TD3:
         self.lp = {name: LowPrecisionCopy(getattr(self, name), self.dtype)
                    for name in ("actor", "critic", "actor_target", "critic_target")}
         self.noise_gen = torch.Generator().manual_seed(c.seed + 1)  # target smoothing
-        self.rng = np.random.default_rng(c.seed + 2)  # exploration noise, random actions
+        self.rng = np.random.default_rng(c.seed + 2)  # act()'s noise when given no rng
         self.updates = 0
         # the skyloop task this agent learns (bus.task.TaskSpec.to_dict()) and how its
         # observations are made (perception.observation.scaling_fields), recorded in its
@@ -296,11 +296,6 @@ class TD3:
             a = explore(a, rng or self.rng, c.exploration_noise, c.max_action)
         a = a.astype(np.float32, copy=False)
         return a[0] if single else a
-
-    def random_action(self) -> np.ndarray:
-        """Uniform action in [-max_action, max_action] (the first ``start_steps`` steps)."""
-        c = self.config
-        return self.rng.uniform(-c.max_action, c.max_action, c.action_dim).astype(np.float32)
 
     # ------------------------------------------------------------------ learning
 
@@ -434,7 +429,8 @@ class TD3:
     @classmethod
     def from_state_dict(cls, state: dict[str, Any]) -> TD3:
         """Rebuild an agent (with its saved config) from ``state_dict()``."""
-        agent = cls(cls.config_class(**state["config"]))
+        config = {k: v for k, v in state["config"].items() if k not in LEGACY_CONFIG_KEYS}
+        agent = cls(cls.config_class(**config))
         agent.load_state_dict(state)
         return agent
 

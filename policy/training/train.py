@@ -9,10 +9,11 @@ env id (``policy.training.gym_task.GymTask``: frames stacked the same way, an ep
 Per env step: act (uniform random for the first ``start_steps``, then the actor plus
 Gaussian exploration noise), step the env, store the transition with its *base* reward
 (terminal only on collision/goal, never on the 300-step truncation), and, once
-``start_steps`` transitions are stored, one agent update. Per episode end: the goal-reward variant rewrites the episode's
-rewards in the replay buffer (TR/NGR/EGR/ABR), a CSV row is written, TensorBoard scalars
-are logged (below). ``envs`` envs are stepped in turn (``policy.training.collector.Collector``),
-each its own stream of episodes in the replay buffer.
+``start_steps`` transitions are stored, one agent update. Per episode end: the
+goal-reward variant rewrites the episode's rewards in the replay buffer
+(TR/NGR/EGR/ABR), a CSV row is written, TensorBoard scalars are logged (below).
+``envs`` envs are stepped in turn (``policy.training.collector.Collector``), each its
+own stream of episodes in the replay buffer.
 
 TensorBoard, one point per finished episode on two x-axes, each its own run directory so
 that a resume purges each at its own step:
@@ -303,7 +304,7 @@ class Trainer:
 
     # -- the loops -----------------------------------------------------------------
 
-    def _loop_sync(self, emit: Callable[[dict], None]) -> None:
+    def _loop_sync(self, after_episode: Callable[[dict], None]) -> None:
         """Envs and learner in turn (Algorithm 3.1 as written): reproducible."""
         envs = [self._first_env, *make_envs(asdict(self.config), self.config.envs - 1)]
         collector = self._collector(envs)
@@ -313,11 +314,11 @@ class Trainer:
                 if self.total_steps >= self.config.start_steps:
                     self._update()
                 if tr.terminated or tr.truncated:
-                    emit(self._end_episode(tr))
+                    after_episode(self._end_episode(tr))
                     if self.episode >= self.config.episodes:
                         return
 
-    def _loop_parallel(self, emit: Callable[[dict], None]) -> None:
+    def _loop_parallel(self, after_episode: Callable[[dict], None]) -> None:
         """Envs in a collector process, updates here (see the module docstring)."""
         import torch.multiprocessing as tmp
 
@@ -369,7 +370,7 @@ class Trainer:
                 for tr in batch:
                     self._store(tr)
                     if tr.terminated or tr.truncated:
-                        emit(self._end_episode(tr))
+                        after_episode(self._end_episode(tr))
                         if self.episode >= c.episodes:
                             break
         finally:
@@ -418,7 +419,10 @@ class Trainer:
                 rows.writeheader()
             t0, steps0, wall0 = time.perf_counter(), self.total_steps, self.wall_s
 
-            def emit(row: dict) -> None:
+            def after_episode(row: dict) -> None:
+                """Everything after an episode: its CSV row, TensorBoard, the progress
+                bar, ``on_episode``, and every ``checkpoint_every`` / ``snapshot_every``
+                episodes the checkpoint / an actor snapshot."""
                 rows.writerow(row)
                 elapsed = time.perf_counter() - t0
                 self.wall_s = wall0 + elapsed
@@ -440,7 +444,7 @@ class Trainer:
 
             try:
                 with flush_denormals():  # a large speed-up, see policy.algorithms.td3
-                    (self._loop_sync if self.config.sync else self._loop_parallel)(emit)
+                    (self._loop_sync if self.config.sync else self._loop_parallel)(after_episode)
                 board.end()  # the hparams session ends as a success
             finally:
                 board.close()  # also when a callback or the loop raises

@@ -28,12 +28,13 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from policy.training.plots import CSV_NAME
 from policy.training.train import CHECKPOINT, TrainConfig, Trainer, finished
 from skyloop.experiment.grid import Grid
 
 __all__ = ["run_grid", "grid_status"]
 
-PARTIAL = ("episodes.csv", "config.json", "tb", "curve.png")  # a run without a checkpoint
+PARTIAL = (CSV_NAME, "config.json", "tb", "curve.png")  # a run without a checkpoint
 
 
 def _train_trial(params: dict[str, Any], *, configs: dict[str, dict], out: str) -> None:
@@ -129,7 +130,7 @@ def _episodes_done(out: Path, grid: Grid, status: dict[str, str]) -> dict[str, i
         if status[t.name] == "new":
             done[t.name] = 0
             continue
-        csv_path = out / t.name / "episodes.csv"
+        csv_path = out / t.name / CSV_NAME
         try:
             done[t.name] = max(0, sum(1 for _ in csv_path.open()) - 1)
         except OSError:
