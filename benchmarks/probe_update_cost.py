@@ -3,9 +3,12 @@
 The bench_train rows time whole training loops; this times ``TD3.update`` itself, wrapped
 with a clock, inside a real ``Trainer`` run (``bench_train``'s run: TD3+ABR on the valley,
 5,000 env steps, the first 500 updates dropped) in the ``--sync`` or the default
-(parallel) mode, and the same update alone (``alone``, on ``bench_td3``'s buffer). Run:
+(parallel) mode, and the same update alone (``alone``, on ``bench_td3``'s buffer).
+``parts`` times each part of the update alone (medians of 500 mini-batches, 3 rounds): the
+TD target (eqs. 2.11-2.12), the critic step (eq. 2.13: forward, backward, Adam), the
+actor step (every ``policy_delay``-th update) and the soft target update. Run:
 
-    python -m benchmarks.probe_update_cost {sync,parallel,alone} [--precision bf16|fp32]
+    python -m benchmarks.probe_update_cost {sync,parallel,alone,parts} [--precision bf16|fp32]
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import argparse
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -21,6 +25,7 @@ import torch
 import policy.algorithms.td3 as td3
 from benchmarks.bench_td3 import BATCH, _fill_ours
 from benchmarks.bench_train import bench_config
+from policy.algorithms.replay import Batch, ReplayBuffer
 from policy.training.train import Trainer
 
 STEPS, DROP = 5000, 500
@@ -74,11 +79,48 @@ def alone(precision: str, n: int = 4000) -> list[float]:
     return durations[DROP:]
 
 
+def median_ms(buf: ReplayBuffer, f: Callable[[Batch], object], n: int = 600) -> float:
+    """Median wall time (ms) of ``f`` on fresh mini-batches, the first 100 dropped."""
+    times = []
+    for _ in range(n):
+        b = buf.sample(BATCH)
+        t = time.perf_counter()
+        f(b)
+        times.append(time.perf_counter() - t)
+    return 1e3 * statistics.median(times[100:])
+
+
+def parts(precision: str) -> None:
+    """Print what each part of an update costs, three rounds."""
+    torch.set_num_threads(1)
+    agent = td3.TD3(td3.TD3Config(batch_size=BATCH, precision=precision))
+    buf = _fill_ours(10_000)
+
+    def target(b: Batch) -> torch.Tensor:
+        return agent.target(b.next_state, b.reward, b.done)
+
+    with td3.flush_denormals():
+        for _ in range(300):
+            agent.update(buf.sample(BATCH))
+        for _ in range(3):
+            tgt = median_ms(buf, target)
+            critic = median_ms(buf, lambda b: agent.learn(b, target(b), train_actor=False)) - tgt
+            actor = median_ms(buf, lambda b: agent.actor_step(b.state.to(agent.dtype)))
+            soft = median_ms(buf, lambda b: agent.update_targets())
+            mean = tgt + critic + (actor + soft) / agent.config.policy_delay
+            print(f"parts ({precision}): target {tgt:.2f} ms, critic step {critic:.2f}, actor "
+                  f"step {actor:.2f}, soft update {soft:.2f}: {mean:.2f} ms an update on average",
+                  flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("where", choices=["sync", "parallel", "alone"])
+    parser.add_argument("where", choices=["sync", "parallel", "alone", "parts"])
     parser.add_argument("--precision", default="bf16", choices=["bf16", "fp32"])
     args = parser.parse_args()
+    if args.where == "parts":
+        parts(args.precision)
+        return
     d = (alone(args.precision) if args.where == "alone"
          else in_trainer(args.where == "sync", args.precision))
     q = statistics.quantiles(d, n=10)
