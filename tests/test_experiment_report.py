@@ -16,7 +16,13 @@ from scipy import stats
 
 from policy.training.train import CSV_FIELDS, TrainConfig, Trainer
 from skyloop.experiment.grid import load_grid
-from skyloop.experiment.report import aggregate, t_interval, trailing_mean, write_report
+from skyloop.experiment.report import (
+    aggregate,
+    identical_pairs,
+    t_interval,
+    trailing_mean,
+    write_report,
+)
 
 GRID = """
 name = "synthetic"
@@ -309,3 +315,17 @@ def test_eval_of_a_real_gym_trial(tmp_path):
     summary, _ = load(root)
     assert summary["trials"][0]["eval_return"] == ev["mean_return"]
     assert summary["methods"][0]["eval_return"]["mean"] == ev["mean_return"]
+
+
+def test_identical_pairs_finds_a_method_that_never_acted():
+    rng = np.random.default_rng(0)
+    ret = rng.normal(-50.0, 10.0, 40)
+    steps = rng.integers(50, 2000, 40)
+    base = {"return": ret, "steps": steps, "total_steps": np.cumsum(steps)}
+    differs = {**base, "return": np.where(np.arange(40) == 39, ret + 0.5, ret)}  # last row
+    shorter = {k: v[:39] for k, v in base.items()}
+    pairs = identical_pairs({
+        "td3+ngr": {0: base, 1: base, 2: base, 3: {k: v[:0] for k, v in base.items()}},
+        "td3+abr": {0: dict(base), 1: differs, 2: shorter, 3: {k: v[:0] for k, v in base.items()}},
+    })
+    assert pairs == [{"methods": ["td3+ngr", "td3+abr"], "seed": 0, "episodes": 40}]

@@ -232,6 +232,31 @@ def goal_bonus(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     return (cols["return"] - cols["base_return"])[goal], cols["base_return"][goal]
 
 
+IDENTITY_COLUMNS = ("return", "steps", "total_steps")
+
+
+def identical_pairs(cols_by_method: dict[str, dict[int, dict[str, np.ndarray]]]
+                    ) -> list[dict[str, Any]]:
+    """Pairs of methods whose trials of one seed ran the same episodes: the same number of
+    episodes (at least one) and equal ``IDENTITY_COLUMNS`` in every row. In sync mode two
+    goal rewards of one seed stay identical until the first goal episode where they
+    differ (TD3+ABR and TD3+NGR before any goal), so a pair found here is a method that
+    never acted in that trial. ``cols_by_method``: method -> seed -> CSV columns."""
+    pairs = []
+    methods = list(cols_by_method)
+    for i, a in enumerate(methods):
+        for b in methods[i + 1:]:
+            for seed in sorted(set(cols_by_method[a]) & set(cols_by_method[b])):
+                ca, cb = cols_by_method[a][seed], cols_by_method[b][seed]
+                n = n_episodes(ca)
+                if not n or n != n_episodes(cb) or not all(
+                        k in ca and k in cb and np.array_equal(ca[k], cb[k])
+                        for k in IDENTITY_COLUMNS):
+                    continue
+                pairs.append({"methods": [a, b], "seed": seed, "episodes": n})
+    return pairs
+
+
 def t_interval(values: Iterable[float], confidence: float = 0.95
                ) -> tuple[float, float | None, float | None]:
     """(mean, lo, hi): the t-interval of the mean across seeds; lo = hi = None with fewer
@@ -846,7 +871,14 @@ def _eval_table(by_method: dict[str, list[TrialData]], entries: dict[str, dict],
     return _table(header, rows) + [""]
 
 
-def _analysis(by_method: dict[str, list[TrialData]], entries: dict[str, dict]) -> list[str]:
+def _cols_by_method(by_method: dict[str, list[TrialData]]
+                    ) -> dict[str, dict[int, dict[str, np.ndarray]]]:
+    return {m: {t.config.seed: t.cols for t in ts if n_episodes(t.cols)}
+            for m, ts in by_method.items()}
+
+
+def _analysis(by_method: dict[str, list[TrialData]], entries: dict[str, dict],
+              same: list[dict[str, Any]]) -> list[str]:
     lines = ["### Analysis (computed from the CSVs)", ""]
     empty = [m for m, e in entries.items() if not e["n_seeds"]]
     if empty:
@@ -893,6 +925,14 @@ def _analysis(by_method: dict[str, list[TrialData]], entries: dict[str, dict]) -
     def qs(d: dict | None, digits: int = 1) -> str:
         return " / ".join(_num(d[k], digits) for k in q) if d else "—"
 
+    if same:
+        lines += ["**Identical trials**: these trials of one seed ran the same episodes, "
+                  "return, steps and env steps equal in every CSV row: the goal reward of "
+                  "one never changed a reward the other gave (in sync mode, no goal episode "
+                  "at which they differ).", ""]
+        lines += _table(["methods", "seed", "episodes"],
+                        [[" = ".join(p["methods"]), str(p["seed"]), f"{p['episodes']:,}"]
+                         for p in same]) + [""]
     bonus_rows = [[m, f"{e['goal_bonus']['goal_episodes']:,}", qs(e["goal_bonus"]["bonus"]),
                    qs(e["goal_bonus"]["base_return"]),
                    qs(e["goal_bonus"]["bonus_over_abs_base"], 3)]
@@ -953,7 +993,7 @@ def write_report(grid_dir: Path, eval_episodes: int = 0) -> list[Path]:
                   f"1,000,000,000 + i (no training episode uses them); cached as "
                   f"`<trial>/eval_{eval_episodes}.json`. Unfinished trials are not evaluated "
                   f"(their actor is a checkpoint).", ""]
-    methods_out, orderings = [], {}
+    methods_out, orderings, identical = [], {}, {}
     for task in dict.fromkeys(t.task for t in trials):
         by_method: dict[str, list[TrialData]] = {}
         for td in trials:
@@ -1003,14 +1043,15 @@ def write_report(grid_dir: Path, eval_episodes: int = 0) -> list[Path]:
         else:
             lines += ["No goal episodes of an ABR, EGR or TR method yet: no bonus histogram.",
                       ""]
-        lines += _analysis(by_method, entries)
+        identical[task] = identical_pairs(_cols_by_method(by_method))
+        lines += _analysis(by_method, entries, identical[task])
     summary = {"grid": grid.name, "grid_file": str(grid_dir / "grid.toml"),
                "commits": list(dict.fromkeys(r.get("commit", "unknown") for r in runs)),
                "runs": runs, "written": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
                "trials_finished": sum(t.status == "finished" for t in trials),
                "trials_total": len(trials), "eval_episodes": eval_episodes or None,
                "trials": [trial_record(t) for t in trials], "methods": methods_out,
-               "ordering": orderings, "paper": PAPER}
+               "ordering": orderings, "identical_trials": identical, "paper": PAPER}
     summary_path = grid_dir / "summary.json"
     summary_path.write_text(json.dumps(_clean(summary), indent=2))
     report_path = grid_dir / "REPORT.md"
