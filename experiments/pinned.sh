@@ -28,16 +28,19 @@ set -euo pipefail
 self=$(cd "$(dirname "$0")" && pwd)/$(basename "$0")
 cd "$(dirname "$0")/.."
 main=$(pwd)
-# what queue waits on, and how often it looks (the tests set both)
-wait_pattern=${PINNED_WAIT_PATTERN:-m skyloop experiment ru[n] }
+# what queue waits on (a grid's command line, `python -m skyloop experiment run` or the
+# `skyloop experiment run` console script; `ru[n]` keeps it from matching itself), and
+# how often it looks (the tests set both)
+wait_pattern=${PINNED_WAIT_PATTERN:-skyloop experiment ru[n] }
 poll_s=${PINNED_POLL_S:-30}
+locks=$(dirname "$main")  # grid-<name of OUT>.lock (one run per OUT), grid-queue.lock
 
 usage() { sed -n '4,6p' "$self" | sed 's/^# *//' >&2; exit 2; }
 die() { echo "pinned.sh: $*" >&2; exit 2; }
 
-# short sha of COMMIT, or exit 2 naming it
+# the full sha of COMMIT, or exit 2 naming it
 sha_of() {
-    git rev-parse --short=7 "$1^{commit}" 2>/dev/null \
+    git rev-parse "$1^{commit}" 2>/dev/null \
         || die "COMMIT '$1' is not a commit of this repository"
 }
 
@@ -45,21 +48,21 @@ sha_of() {
 check_grid() {
     local sha
     sha=$(sha_of "$1")
-    git cat-file -e "$sha:$2" 2>/dev/null || die "GRID '$2': no such file at commit $sha"
+    git cat-file -e "$sha:$2" 2>/dev/null || die "GRID '$2': no such file at commit ${sha:0:7}"
 }
 
 running() { pgrep -f "experiment run $1 --out $2( |\$)" >/dev/null; }
 
-# COMMIT GRID OUT CONC: lay out the worktree and OUT, then run the grid in the foreground
-run_grid() {
-    local sha wt grid=$2 out=${3%/} conc=$4
+# COMMIT OUT: lay out ../exp-<sha> (worktree, .venv) and its OUT; prints the worktree
+prepare() {
+    local sha wt out=${2%/}
     sha=$(sha_of "$1")
-    wt=$(dirname "$main")/exp-$sha
+    wt=$(dirname "$main")/exp-${sha:0:7}
     if [ ! -d "$wt" ]; then
         git worktree prune
         git worktree add --detach "$wt" "$sha" >/dev/null
     fi
-    make -s -C "$wt" .venv/.installed
+    make -s -C "$wt" .venv/.installed >&2
     if [ -d "$out" ]; then
         mkdir -p "$wt/$out"
         cp -rn "$out/." "$wt/$out/"  # never overwrites the worktree's newer state
@@ -70,7 +73,17 @@ run_grid() {
     mkdir -p "$wt/$out"
     printf '# worktree only: keep checkpoints visible to git (see pinned.sh)\n!checkpoint.pt\n' \
         >"$wt/$out/.gitignore"
-    echo "pinned.sh: $(date -u +%FT%TZ) $grid from $wt (commit $sha) -> $wt/$out"
+    echo "$wt"
+}
+
+# COMMIT GRID OUT CONC: prepare, then run the grid in the foreground, holding OUT's lock
+# (inherited by the grid's process: a second run of the same OUT is refused meanwhile)
+run_grid() {
+    local wt grid=$2 out=${3%/} conc=$4
+    exec 9>"$locks/grid-$(basename "$out").lock"
+    flock -n 9 || die "a grid with --out $out is already running (lock $locks/grid-$(basename "$out").lock)"
+    wt=$(prepare "$1" "$out")
+    echo "pinned.sh: $(date -u +%FT%TZ) $grid from $wt -> $wt/$out"
     cd "$wt" && nice -n 19 .venv/bin/python -m skyloop experiment run "$grid" --out "$out" \
         --max-concurrent "$conc"
 }
@@ -86,16 +99,27 @@ run|start)
         run_grid "$2" "$3" "$4" "${5:-2}"
         exit
     fi
+    wt=$(prepare "$2" "$4")  # in the foreground: a failing worktree or venv shows here
     log=$(dirname "$main")/grid-$(basename "${4%/}").log
-    (setsid nohup bash "$self" run "$2" "$3" "$4" "${5:-2}" >>"$log" 2>&1 </dev/null &)
-    echo "pinned.sh: $3 running from $(dirname "$main")/exp-$(sha_of "$2") (commit $(sha_of "$2")); log $log"
+    (setsid nohup bash "$self" run "$(sha_of "$2")" "$3" "$4" "${5:-2}" >>"$log" 2>&1 </dev/null &)
+    echo "pinned.sh: $3 running from $wt; log $log"
     ;;
 queue)
     shift
     [ $(($# % 3)) -eq 0 ] || die "queue takes COMMIT GRID.toml OUT triples, got $# arguments"
     args=("$@")
-    for ((i = 0; i < $#; i += 3)); do check_grid "${args[i]}" "${args[i+1]}"; done
+    for ((i = 0; i < $#; i += 3)); do
+        check_grid "${args[i]}" "${args[i+1]}"
+        args[i]=$(sha_of "${args[i]}")  # pinned now: HEAD or a branch may move meanwhile
+    done
+    # one queue at a time: the lock is held by the background queue (and its grids),
+    # which inherit this descriptor
+    exec 8>"$locks/grid-queue.lock"
+    flock -n 8 || die "a queue is already running (lock $locks/grid-queue.lock; pgrep -af 'queue')"
     log=$(dirname "$main")/grid-queue.log
+    # this script as queued (beside it, so that it finds main the same way; git-ignored)
+    script=$(mktemp "$main/experiments/.pinned-queue-XXXXXX.sh")
+    cp "$self" "$script"
     # one grid at a time: wait while any grid runs (this queue's or one started before it)
     # (the pattern goes by the environment: in the queue's own command line, pgrep would
     # find it there)
@@ -106,12 +130,13 @@ queue)
             while pgrep -f "$PINNED_WAIT_PATTERN" >/dev/null; do sleep "$PINNED_POLL_S"; done
             bash "$script" run "$1" "$2" "$3" 2 || echo "pinned.sh: $2 ended with status $?"
             shift 3
-        done' queue "$self" "$@" >>"$log" 2>&1 </dev/null &)
+        done
+        rm -f "$script"' queue "$script" "${args[@]}" >>"$log" 2>&1 </dev/null &)
     echo "pinned.sh: queued $(($# / 3)) grid(s); log $log"
     ;;
 collect)
     sha=$(sha_of "$2")
-    wt=$(dirname "$main")/exp-$sha
+    wt=$(dirname "$main")/exp-${sha:0:7}
     out=${3%/}
     [ -d "$wt/$out" ] || die "$wt/$out: no such directory"
     n=0

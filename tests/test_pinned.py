@@ -8,6 +8,7 @@ once: the small repository has no Makefile to build a venv with)."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -99,29 +100,53 @@ def test_bad_arguments_are_one_line_and_exit_2(tmp_path):
     assert not (tmp_path / "grid-queue.log").exists()  # a refused queue started nothing
 
 
-def test_queue_waits_for_the_running_grid_then_starts_the_next(tmp_path):
+def test_queue_waits_for_the_running_grid_then_runs_each_in_turn(tmp_path):
     main, sha = repo_with_script(tmp_path)
+    (main / "experiments" / "h.toml").write_text('name = "h"\n')
+    git(main, "add", ".")
+    git(main, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "h")
+    head = git(main, "rev-parse", "--short=7", "HEAD")
     marker = f"pinned-test-grid-{uuid.uuid4().hex}"  # stands for a running grid's command line
     grid = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)", marker])
     log = tmp_path / "grid-queue.log"
+    env = {"PINNED_WAIT_PATTERN": marker, "PINNED_POLL_S": "0.2"}
     try:
-        r = pinned(main, "queue", "HEAD", "experiments/g.toml", "experiments/g",
-                   env={"PINNED_WAIT_PATTERN": marker, "PINNED_POLL_S": "0.2"})
+        r = pinned(main, "queue", sha, "experiments/g.toml", "experiments/g",
+                   "HEAD", "experiments/h.toml", "experiments/h", env=env)
         assert r.returncode == 0, r.stderr
-        assert "queued 1 grid(s)" in r.stdout
+        assert "queued 2 grid(s)" in r.stdout
+        again = pinned(main, "queue", "HEAD", "experiments/h.toml", "experiments/h", env=env)
+        assert again.returncode == 2 and "a queue is already running" in again.stderr
         time.sleep(1.5)
         assert not (tmp_path / f"exp-{sha}").exists()  # still waiting
         grid.kill()
         grid.wait()
-        # the grid's turn: its worktree is laid out, and building its venv fails here
-        assert wait_for(lambda: log.exists() and "ended with status" in log.read_text()), \
-            log.read_text() if log.exists() else "no log"
+        # each grid's turn: its worktree is laid out, and building its venv fails here
+        assert wait_for(lambda: log.exists() and log.read_text().count("ended with status") == 2
+                        ), log.read_text() if log.exists() else "no log"
         assert (tmp_path / f"exp-{sha}" / "experiments" / "g.toml").exists()
-        assert "experiments/g.toml ended with status 2" in log.read_text()
+        assert (tmp_path / f"exp-{head}" / "experiments" / "h.toml").exists()
+        text = log.read_text()
+        assert text.index("experiments/g.toml ended") < text.index("experiments/h.toml ended")
+        assert wait_for(lambda: not list((main / "experiments").glob(".pinned-queue-*")))
     finally:
         grid.kill()
         grid.wait()
         kill_queue(marker)
+
+
+def test_the_default_wait_pattern_finds_grids_but_not_the_queue():
+    """What the queue waits on (pgrep -f, an extended regex) matches a grid however it was
+    started and not the queue's own command line."""
+    line = next(x for x in SCRIPT.read_text().splitlines() if x.startswith("wait_pattern="))
+    pattern = re.search(r":-(.*)}$", line).group(1)
+    grids = [".venv/bin/python -m skyloop experiment run experiments/g.toml --out experiments/g",
+             "/w/.venv/bin/python /w/.venv/bin/skyloop experiment run g.toml --out runs/g"]
+    others = ["bash /w/main/experiments/pinned.sh run abc experiments/g.toml experiments/g 2",
+              "bash -c script=$1 queue /w/main/experiments/.pinned-queue-x.sh abc g.toml g",
+              "skyloop experiment report experiments/g"]
+    assert all(re.search(pattern, g) for g in grids)
+    assert not any(re.search(pattern, o) for o in others)
 
 
 def kill_queue(marker: str) -> None:
