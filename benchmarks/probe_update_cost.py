@@ -99,13 +99,30 @@ def parts(precision: str) -> None:
     def target(b: Batch) -> torch.Tensor:
         return agent.target(b.next_state, b.reward, b.done)
 
+    calls = 0
+
+    def target_as_in_updates(b: Batch) -> torch.Tensor:
+        # an update refreshes the target networks' low-precision copies after every soft
+        # update, i.e. before every policy_delay-th target
+        nonlocal calls
+        calls += 1
+        if calls % agent.config.policy_delay == 0:
+            agent.lp["actor_target"].changed()
+            agent.lp["critic_target"].changed()
+        return target(b)
+
+    def actor_step_as_in_updates(b: Batch) -> float:
+        agent.lp["critic"].changed()  # the critic has just stepped in a delayed update
+        return agent.actor_step(b.state.to(agent.dtype))
+
     with td3.flush_denormals():
         for _ in range(300):
             agent.update(buf.sample(BATCH))
         for _ in range(3):
-            tgt = median_ms(buf, target)
-            critic = median_ms(buf, lambda b: agent.learn(b, target(b), train_actor=False)) - tgt
-            actor = median_ms(buf, lambda b: agent.actor_step(b.state.to(agent.dtype)))
+            tgt = median_ms(buf, target_as_in_updates)
+            critic = median_ms(buf, lambda b: agent.learn(b, target(b), train_actor=False))
+            critic -= median_ms(buf, target)
+            actor = median_ms(buf, actor_step_as_in_updates)
             soft = median_ms(buf, lambda b: agent.update_targets())
             mean = tgt + critic + (actor + soft) / agent.config.policy_delay
             print(f"parts ({precision}): target {tgt:.2f} ms, critic step {critic:.2f}, actor "

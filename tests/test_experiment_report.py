@@ -323,9 +323,10 @@ def test_identical_pairs_finds_a_method_that_never_acted():
     steps = rng.integers(50, 2000, 40)
     base = {"return": ret, "steps": steps, "total_steps": np.cumsum(steps)}
     differs = {**base, "return": np.where(np.arange(40) == 39, ret + 0.5, ret)}  # last row
-    shorter = {k: v[:39] for k, v in base.items()}
+    shorter = {k: v[:39] for k, v in base.items()}  # the same so far: a trial further on
     pairs = identical_pairs({
         "td3+ngr": {0: base, 1: base, 2: base, 3: {k: v[:0] for k, v in base.items()}},
         "td3+abr": {0: dict(base), 1: differs, 2: shorter, 3: {k: v[:0] for k, v in base.items()}},
     })
-    assert pairs == [{"methods": ["td3+ngr", "td3+abr"], "seed": 0, "episodes": 40}]
+    assert pairs == [{"methods": ["td3+ngr", "td3+abr"], "seed": 0, "episodes": 40, "of": [40, 40]},
+                     {"methods": ["td3+ngr", "td3+abr"], "seed": 2, "episodes": 39, "of": [40, 39]}]

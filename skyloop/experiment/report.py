@@ -237,23 +237,24 @@ IDENTITY_COLUMNS = ("return", "steps", "total_steps")
 
 def identical_pairs(cols_by_method: dict[str, dict[int, dict[str, np.ndarray]]]
                     ) -> list[dict[str, Any]]:
-    """Pairs of methods whose trials of one seed ran the same episodes: the same number of
-    episodes (at least one) and equal ``IDENTITY_COLUMNS`` in every row. In sync mode two
-    goal rewards of one seed stay identical until the first goal episode where they
-    differ (TD3+ABR and TD3+NGR before any goal), so a pair found here is a method that
-    never acted in that trial. ``cols_by_method``: method -> seed -> CSV columns."""
+    """Pairs of methods whose trials of one seed ran the same episodes: equal
+    ``IDENTITY_COLUMNS`` in every row the two CSVs both have (at least one; ``episodes``,
+    with ``of`` each trial's count when one is further on). In sync mode two goal rewards
+    of one seed stay identical until the first goal episode where they differ (TD3+ABR and
+    TD3+NGR before any goal), so a pair found here is a method that never acted in those
+    episodes. ``cols_by_method``: method -> seed -> CSV columns."""
     pairs = []
     methods = list(cols_by_method)
     for i, a in enumerate(methods):
         for b in methods[i + 1:]:
             for seed in sorted(set(cols_by_method[a]) & set(cols_by_method[b])):
                 ca, cb = cols_by_method[a][seed], cols_by_method[b][seed]
-                n = n_episodes(ca)
-                if not n or n != n_episodes(cb) or not all(
-                        k in ca and k in cb and np.array_equal(ca[k], cb[k])
-                        for k in IDENTITY_COLUMNS):
+                na, nb = n_episodes(ca), n_episodes(cb)
+                n = min(na, nb)
+                if not n or not all(k in ca and k in cb and np.array_equal(ca[k][:n], cb[k][:n])
+                                    for k in IDENTITY_COLUMNS):
                     continue
-                pairs.append({"methods": [a, b], "seed": seed, "episodes": n})
+                pairs.append({"methods": [a, b], "seed": seed, "episodes": n, "of": [na, nb]})
     return pairs
 
 
@@ -927,11 +928,13 @@ def _analysis(by_method: dict[str, list[TrialData]], entries: dict[str, dict],
 
     if same:
         lines += ["**Identical trials**: these trials of one seed ran the same episodes, "
-                  "return, steps and env steps equal in every CSV row: the goal reward of "
-                  "one never changed a reward the other gave (in sync mode, no goal episode "
-                  "at which they differ).", ""]
+                  "return, steps and env steps equal in every CSV row both have: the goal "
+                  "reward of one never changed a reward the other gave (in sync mode, no "
+                  "goal episode at which they differ).", ""]
         lines += _table(["methods", "seed", "episodes"],
-                        [[" = ".join(p["methods"]), str(p["seed"]), f"{p['episodes']:,}"]
+                        [[" = ".join(p["methods"]), str(p["seed"]),
+                          f"{p['episodes']:,}" + ("" if p["of"][0] == p["of"][1] else
+                                                 " (of {:,} / {:,})".format(*p["of"]))]
                          for p in same]) + [""]
     bonus_rows = [[m, f"{e['goal_bonus']['goal_episodes']:,}", qs(e["goal_bonus"]["bonus"]),
                    qs(e["goal_bonus"]["base_return"]),
