@@ -255,6 +255,10 @@ def test_a_gym_env_reports_the_env_return(tmp_path):
         assert by_trial[name]["env"] == "BipedalWalkerHardcore-v3"
         assert by_trial[name]["return_last100"] == pytest.approx(
             np.mean([r["base_return"] for r in rows[-100:]]))
+        best = max(range(len(rows)), key=lambda i: rows[i]["base_return"])
+        assert by_trial[name]["best_return"] == pytest.approx(rows[best]["base_return"])
+        assert by_trial[name]["best_return_episode"] == best + 1
+        assert f"(episode {best + 1:,})" in report
     o = summary["ordering"]["BipedalWalkerHardcore-v3"]["training"]
     assert o["metric"] == "return_last100" and o["paper"] == ["td3+abr", "td3+ngr"]
     means = {m["method"]: m["return_last100"]["mean"] for m in summary["methods"]}

@@ -207,6 +207,10 @@ def trial_metrics(cols: dict[str, np.ndarray]) -> dict[str, Any]:
         m["peak_success500"], m["peak_episode"] = float(curve[k]), k + WINDOW
     for key, col in (("return_last100", "base_return"), ("learning_return_last100", "return")):
         m[key] = _mean(cols[col][-RETURN_WINDOW:]) if col in cols else NAN
+    m["best_return"], m["best_return_episode"] = NAN, None  # the base (env's own) return
+    if n and "base_return" in cols:
+        k = int(np.argmax(cols["base_return"]))
+        m["best_return"], m["best_return_episode"] = float(cols["base_return"][k]), k + 1
     if n and "total_steps" in cols:
         m["env_steps"] = int(cols["total_steps"][-1])
     else:
@@ -936,6 +940,13 @@ def _analysis(by_method: dict[str, list[TrialData]], entries: dict[str, dict],
                           f"{p['episodes']:,}" + ("" if p["of"][0] == p["of"][1] else
                                                  " (of {:,} / {:,})".format(*p["of"]))]
                          for p in same]) + [""]
+    gym = [t for ts in by_method.values() for t in ts if t.is_gym and n_episodes(t.cols)]
+    if gym:
+        goal = gym[0].config.goal_return
+        lines += [f"**Best env return of any episode** (the goal: {goal:g} or more), per "
+                  "trial: " + "; ".join(
+                      f"{t.trial.method} s{t.config.seed} {_num(t.metrics['best_return'])} "
+                      f"(episode {t.metrics['best_return_episode']:,})" for t in gym) + ".", ""]
     bonus_rows = [[m, f"{e['goal_bonus']['goal_episodes']:,}", qs(e["goal_bonus"]["bonus"]),
                    qs(e["goal_bonus"]["base_return"]),
                    qs(e["goal_bonus"]["bonus_over_abs_base"], 3)]
