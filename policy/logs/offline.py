@@ -90,7 +90,8 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None,
 
     ``commands`` (body-frame ``cmd_vel`` of the whole file by stamp) recovers an action
     the recorder saw after the episode's END event: in a stack run commands come from
-    the bridge and events from the sim, so the last command can arrive late.
+    the bridge and events from the sim, so the last command can arrive late (and the
+    previous episode's last one inside this episode's range, which the stamps leave out).
     Observations are joined by their own (episode, step) fields, never by where they
     lie in the log: perception's observation of the next episode's step 0 can reach the
     recorder before the sim's START does (two paths through the bus), and so lie inside
@@ -110,11 +111,17 @@ def episode_steps(episode, commands: dict[int, tuple] | None = None,
                 if v == episode.vehicle and e == episode.index]
     obs = {int(o.step): observation_values(o)[-1] for o in obs_msgs}
     truth_msgs = [m.decode() for m in episode.topic("truth")]
-    cmds = (msg.decode() for msg in episode.topic("cmd_vel"))
-    actions = [setpoint_values(c) for c in cmds if is_action(c)]
-    if len(actions) != T and commands is not None:
+    cmds = [c for c in (msg.decode() for msg in episode.topic("cmd_vel")) if is_action(c)]
+    actions = [setpoint_values(c) for c in cmds]
+    if len(actions) != T:
+        # a command in this episode's range that answers another episode's step (the
+        # previous episode's last, arriving late), or this episode's last arriving after
+        # END: take the command of each of this episode's steps by its stamp, the step it
+        # answers (the window's own first, then the file's)
+        by_stamp = {**(commands or {}),
+                    **{nanoseconds(c.header.stamp): setpoint_values(c) for c in cmds}}
         stamps = [nanoseconds(t.header.stamp) for t in truth_msgs]
-        actions = [commands[t] for t in stamps[:T] if t in commands]
+        actions = [by_stamp[t] for t in stamps[:T] if t in by_stamp]
     records = [step_record_values(r.decode()) for r in episode.topic(keys.STEP_RECORD)]
     return EpisodeSteps(goal, T, episode.outcome, obs,
                         [odometry_values(t) for t in truth_msgs], actions,
