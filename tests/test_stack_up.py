@@ -164,16 +164,21 @@ def test_stack_step_records_are_the_envs_and_give_its_rewards(runs, env_episodes
     env's rewards from them, the last step's included (whose observation the stack log
     lacks)."""
     from policy.algorithms.rewards import RewardConfig
-    from policy.logs.offline import episode_steps, rebuild_episode
+    from policy.logs.offline import body_commands, episode_steps, file_observations, rebuild_episode
 
     _, mcap, _ = runs["peer"]
     episodes, _ = read_episodes(mcap)
+    # as train --from-logs reads a log: the file's commands and observations by their
+    # stamps and fields, since the bridge's last command of an episode can reach the
+    # recorder after the sim's END (seen under load)
+    commands, observations = body_commands(mcap), file_observations(mcap)
     for ep, ref in zip(episodes, env_episodes, strict=True):
         records = [m.step_record_values(x.decode()) for x in ep.topic("step_record")]
         assert records == ref["records"]
         assert episode_steps(ep).records is not None
-        np.testing.assert_array_equal(rebuild_episode(ep, RewardConfig()).rewards,
-                                      ref["rewards"])
+        np.testing.assert_array_equal(
+            rebuild_episode(ep, RewardConfig(), commands, observations).rewards,
+            ref["rewards"])
 
 
 def episode_messages(mcap: Path) -> list:
