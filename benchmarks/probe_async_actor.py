@@ -46,23 +46,18 @@ def _agent() -> td3.TD3:
     return td3.TD3(td3.TD3Config(batch_size=BATCH, precision="bf16"))
 
 
-def _env() -> Any:
-    from policy.training.env import UavNavEnv
-
-    return UavNavEnv(scenario="valley")
-
-
 class _Env:
-    """The valley env stepped with an actor's noisy actions, episodes reset in turn."""
+    """The valley env stepped with an agent's noisy actions (``TD3.act``), episodes reset
+    in turn."""
 
     def __init__(self) -> None:
-        self.env, self.rng, self.episode = _env(), np.random.default_rng(0), 0
+        from policy.training.env import UavNavEnv
+
+        self.env, self.rng, self.episode = UavNavEnv(scenario="valley"), np.random.default_rng(0), 0
         self.state = self.env.reset(seed=0)[0]
 
-    def step(self, actor: torch.nn.Module) -> None:
-        with torch.no_grad():
-            a = actor(torch.as_tensor(self.state, dtype=torch.float32).reshape(1, -1))
-        action = td3.explore(a.numpy()[0], self.rng, 0.2, 2.0)
+    def step(self, agent: td3.TD3) -> None:
+        action = agent.act(self.state, noise=True, rng=self.rng)
         self.state, _, terminated, truncated, _ = self.env.step(action)
         if terminated or truncated:
             self.episode += 1
@@ -75,7 +70,7 @@ def run_sync(steps: int) -> float:
         for i in range(WARMUP + steps):
             if i == WARMUP:
                 t0 = time.perf_counter()
-            env.step(agent.actor)
+            env.step(agent)
             agent.update(buf.sample(BATCH))
     return steps / (time.perf_counter() - t0)
 
@@ -92,7 +87,7 @@ def _collector(mode: str, steps: int, env_steps: Any, updates: Any, actor_pub: S
                 time.sleep(0.0001)
             if mode == "parallel":
                 seen_actor = actor_pub.fetch(agent.actor, seen_actor)
-            env.step(agent.actor)
+            env.step(agent)
             env_steps.value = i + 1
             if mode == "async" and i % 2 == 1:  # the delayed actor step, here
                 seen_critic = critic_pub.fetch(agent.critic, seen_critic)
