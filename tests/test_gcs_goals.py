@@ -11,15 +11,18 @@ it) flies the policy to a third point. The bus saw exactly those three goals.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from loopback import free_port, interrupt, sigint_default
 
@@ -125,12 +128,14 @@ class Gcs:
         assert self.mission_acks == [M.MAV_MISSION_ACCEPTED]
 
 
-@pytest.fixture
-def stack(tmp_path: Path):
+@contextlib.contextmanager
+def gcs_stack(tmp_path: Path, *args: str) -> Iterator[tuple[Gcs, list]]:
+    """``skyloop up --goals gcs ARGS`` with a ground station on its GCS port; yields the
+    station and the goals the bus carried."""
     udp = [free_port(socket.SOCK_DGRAM) for _ in range(4)]
     hub = f"tcp/127.0.0.1:{free_port()}"
     gcs = Gcs(udp[2])
-    cmd = [sys.executable, "-m", "skyloop", "up", "--goals", "gcs", "--seed", "1000",
+    cmd = [sys.executable, "-m", "skyloop", "up", "--goals", "gcs", *args,
            "--hub", hub, "--api-port", str(udp[0]), "--api-local-port", str(udp[1]),
            "--gcs-port", str(udp[2]), "--gcs-local-port", str(udp[3])]
     env = dict(os.environ, XDG_STATE_HOME=str(tmp_path / "state"))
@@ -146,6 +151,12 @@ def stack(tmp_path: Path):
         print(out)
         bus.close()
         gcs.conn.close()
+
+
+@pytest.fixture
+def stack(tmp_path: Path):
+    with gcs_stack(tmp_path, "--seed", "1000") as rig:
+        yield rig
 
 
 def test_mission_and_reposition_fly_the_policy_to_each_goal(stack) -> None:
@@ -193,3 +204,44 @@ def test_mission_and_reposition_fly_the_policy_to_each_goal(stack) -> None:
     for goal, xy in zip(goals, [*WAYPOINTS, REPOSITION], strict=True):
         assert math.dist(goal[:2], xy) < 0.05
     assert goals[0][2] == pytest.approx(3.5)  # SKY_FLIGHT_LVL above the datum
+
+
+def flown_in_process(scenario: str, seeds: range) -> tuple[int, np.ndarray, np.ndarray]:
+    """The first episode seed whose episode the default policy flies to its goal in the
+    in-process env (deterministic), with that episode's start and goal: a goal the
+    policy can reach in that world, so that what the stack test below checks is the
+    plumbing (the drawn world, the ground station's goal, the policy's flight), not the
+    policy's success rate."""
+    from policy.training.evaluate import env_for, make_controller
+    from policy.training.rollout import run_episode
+
+    controller = make_controller(None)
+    env = env_for(controller, scenario)
+    try:
+        for seed in seeds:
+            result = run_episode(env, controller, seed)
+            if result.outcome == "success":
+                return seed, result.start, result.goal
+    finally:
+        env.close()
+    raise AssertionError(f"the default policy reached no goal on {scenario}, seeds {seeds}")
+
+
+def test_a_ground_station_gives_goals_in_a_drawn_city_world(tmp_path: Path) -> None:
+    """``skyloop up --scenario family:city --goals gcs``: the sim draws a fresh city world
+    from the seed (as the env does: the vehicle stands at the env's start), and a click on
+    the map flies the default policy there through the streets."""
+    seed, start, goal = flown_in_process("family:city", range(2000, 2020))
+    with gcs_stack(tmp_path, "--scenario", "family:city", "--seed", str(seed)) as (gcs, goals):
+        gcs.until(lambda: gcs.mode == OFFBOARD and gcs.pos is not None, 120.0,
+                  "the policy in OFFBOARD, hovering")
+        assert math.dist(gcs.pos[:2], start[:2]) < 1.0  # the same drawn world and start
+        assert gcs.reposition_int(*goal[:2]) == M.MAV_RESULT_ACCEPTED
+        t0 = time.monotonic()
+        gcs.until(lambda: "Goal reached" in gcs.texts, 90.0, "Goal reached")
+        gcs.pump(0.2)
+        print(f"seed {seed}: {math.dist(start[:2], goal[:2]):.1f} m in "
+              f"{time.monotonic() - t0:.1f} s, at {math.dist(gcs.pos[:2], goal[:2]):.2f} m")
+        assert math.dist(gcs.pos[:2], goal[:2]) < REACH_M
+        assert not any(t.startswith("Mission stopped") for t in gcs.texts), gcs.texts
+        assert len(goals) == 1 and math.dist(goals[0][:2], goal[:2]) < 0.05
