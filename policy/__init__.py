@@ -5,5 +5,5 @@
 - ``logs``: training from episode logs (MCAP): transitions, assembly, offline.
 - ``nodes``: the processes on the bus: the policy node, the learner, weights.
 
-``policy/shipped/`` holds the shipped actor (``training.evaluate.SHIPPED_POLICY``).
+``shipped``: the actors skyloop ships, by name (``--policy shipped:NAME``).
 """

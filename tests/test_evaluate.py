@@ -9,7 +9,8 @@ import sys
 import pytest
 
 from policy.algorithms.td3 import TD3, TD3Config
-from policy.training.evaluate import SHIPPED_POLICY, ActorController, evaluate
+from policy.shipped import DEFAULT_SHIPPED, SHIPPED, SHIPPED_POLICY, policy_path, shipped_actor
+from policy.training.evaluate import ActorController, evaluate
 
 
 @pytest.fixture(scope="module")
@@ -79,3 +80,29 @@ def test_default_is_the_shipped_policy():
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert str(SHIPPED_POLICY) in out.stdout
+
+
+def test_shipped_policies_by_name():
+    """``--policy shipped`` is the default shipped actor, ``shipped:NAME`` one by name
+    (each one's folder holds its actor), anything else a path; an unknown name is a
+    one-line error naming the flag and the known names."""
+    assert policy_path(None) == policy_path("shipped") == SHIPPED_POLICY \
+        == shipped_actor(DEFAULT_SHIPPED)
+    for name in SHIPPED:
+        assert policy_path(f"shipped:{name}").is_file(), name
+    assert str(policy_path("runs/x/actor.pt")) == "runs/x/actor.pt"
+    with pytest.raises(ValueError, match=r"--policy shipped:nope: no such shipped policy "
+                                         r"\(shipped: shipped:valley"):
+        policy_path("shipped:nope")
+    for command in ("eval", "up", "policy"):  # up: before any node starts
+        episodes = [] if command == "policy" else ["--episodes", "1"]
+        out = subprocess.run([sys.executable, "-m", "skyloop", command, "--policy",
+                              "shipped:nope", *episodes], capture_output=True, text=True,
+                             timeout=300)
+        assert out.returncode == 2 and out.stderr.count("\n") == 1, out.stderr[-2000:]
+        assert "--policy shipped:nope: no such shipped policy" in out.stderr, command
+        assert "started" not in out.stdout, command
+    out = subprocess.run([sys.executable, "-m", "skyloop", "eval", "--policy", "shipped:valley",
+                          "--episodes", "1"], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "shipped TD3+ABR policy 'valley'" in out.stdout

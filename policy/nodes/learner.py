@@ -47,8 +47,9 @@ class LearnerConfig:
     checkpoint_every: Annotated[int, tyro.conf.arg(metavar="EPISODES")] = 50
     """consumed episodes between two checkpoints"""
     init_actor: Annotated[str | None, tyro.conf.arg(
-        metavar="shipped|scratch|FILE")] = "shipped"
-    """the actor to start from: the shipped one, a fresh one, or an actor file"""
+        metavar="shipped[:NAME]|scratch|FILE")] = "shipped"
+    """the actor to start from: a shipped one (as --policy names it), a fresh one, or an
+    actor file"""
     buffer_size: int = 1_000_000
     """replay buffer capacity in transitions"""
     max_episodes: int = 0

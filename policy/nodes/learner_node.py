@@ -99,9 +99,9 @@ class Learner:
 
     def _init_actor(self, init: str) -> None:
         from policy.algorithms.td3 import load_actor
-        from policy.training.evaluate import SHIPPED_POLICY
+        from policy.shipped import policy_path
 
-        path = SHIPPED_POLICY if init == "shipped" else Path(init)
+        path = policy_path(init)
         if not path.is_file():
             raise FileNotFoundError(f"--init-actor {path}: no such actor file")
         self.agent.actor.load_state_dict(load_actor(path, task=TASK).state_dict())

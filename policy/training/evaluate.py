@@ -22,6 +22,12 @@ from bus.task import TASK, TaskSpec
 from perception.observation import ObservationConfig, config_from_scaling
 from policy.algorithms.scripted import StraightLineController
 from policy.algorithms.td3 import load_actor
+from policy.shipped import (  # noqa: F401 - SHIPPED_POLICY re-exported
+    SHIPPED,
+    SHIPPED_POLICY,
+    policy_path,
+    shipped_actor,
+)
 from policy.training.env import EnvConfig, UavNavEnv
 from policy.training.rollout import run_episode, summarize
 from policy.training.settings import (  # noqa: F401 - re-exported: EvalConfig lives in the
@@ -29,8 +35,6 @@ from policy.training.settings import (  # noqa: F401 - re-exported: EvalConfig l
     EvalConfig,
 )
 from sitl.episode import EpisodeConfig
-
-SHIPPED_POLICY = Path(__file__).resolve().parents[1] / "shipped" / "td3_abr_valley" / "actor.pt"
 
 
 def _torch_error(path: Path, exc: Exception) -> str:
@@ -48,8 +52,9 @@ class ActorController:
     """The deterministic actor mu(s) of a trained agent as a controller."""
 
     def __init__(self, path: str | Path, task: TaskSpec | None = TASK) -> None:
-        """``task``: the skyloop task it must fly (None: any, e.g. a Gymnasium env's)."""
-        path = Path(path)
+        """``path``: what :func:`policy_path` takes; ``task``: the skyloop task it must fly
+        (None: any, e.g. a Gymnasium env's)."""
+        path = policy_path(path)
         if path.is_dir():  # a training run's directory: its actor
             if not (path / "actor.pt").is_file():
                 raise FileNotFoundError(f"{path}: a directory without an actor.pt")
@@ -74,8 +79,9 @@ class ActorController:
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{path}: its recorded observation {recorded!r} is not one "
                              f"({exc})") from None
-        shipped = path.resolve() == SHIPPED_POLICY
-        self.name = f"shipped TD3+ABR policy {path}" if shipped else f"actor {path}"
+        shipped = [n for n in SHIPPED if path.resolve() == shipped_actor(n)]
+        self.name = (f"shipped TD3+ABR policy {shipped[0]!r} ({path})" if shipped
+                     else f"actor {path}")
         self.inputs = inputs = self.actor.net[0].in_features
         self.outputs = outputs = self.actor.net[-2].out_features
         self.records_task = self.actor.trained_task is not None
@@ -94,11 +100,12 @@ class ActorController:
 
 
 def make_controller(policy: str | None, task: TaskSpec | None = TASK):
-    """``None`` -> the shipped policy; ``"scripted"`` -> the straight-line baseline.
-    ``task``: the task the actor must fly (None: the one it was trained for)."""
+    """``"scripted"`` -> the straight-line baseline; otherwise the actor
+    :func:`policy_path` names (``None``: the default shipped policy). ``task``: the task
+    the actor must fly (None: the one it was trained for)."""
     if policy == "scripted":
         return StraightLineController()
-    return ActorController(policy or SHIPPED_POLICY, task=task)
+    return ActorController(policy_path(policy), task=task)
 
 
 #: The LiDAR's range for an actor trained with icosahedron radius r: r + this (the

@@ -36,6 +36,7 @@ from bus.task import TASK
 from mavlink_bridge.offboard_client import OffboardClientConfig
 from mavlink_bridge.security import KEY_ENV
 from mavlink_bridge.vehicle_link import VehicleLinkConfig
+from policy.shipped import policy_path
 from policy.training.settings import ConfigError
 from skyloop.cli.settings_base import (
     Repeated,
@@ -245,8 +246,14 @@ class SimRules(ParamValues, ScenarioFlag):
 
 @dataclass(kw_only=True)
 class PolicyFlag(Settings):
-    policy: Annotated[str, tyro.conf.arg(metavar="FILE|scripted|none|shipped")] = "shipped"
-    """an actor file, the scripted controller, no policy, or the actor skyloop ships"""
+    policy: Annotated[str, tyro.conf.arg(
+        metavar="FILE|scripted|none|shipped[:NAME]")] = "shipped"
+    """an actor file, the scripted controller, no policy, or an actor skyloop ships
+    (shipped: the default; shipped:NAME one by name, policy/shipped/README.md)"""
+
+    def validate(self) -> None:
+        super().validate()
+        policy_path(self.policy)  # an unknown shipped:NAME, before any node starts
 
     @property
     def actor(self) -> str | None:
