@@ -207,8 +207,10 @@ class EvalConfig:
     options are generated from these fields (``skyloop.cli.dataclass_cli``, with tyro): each
     default lives here."""
 
-    policy: Annotated[str | None, tyro.conf.arg(metavar="ACTOR|RUN_DIR|scripted")] = None
-    """actor file or run directory (its actor.pt), or scripted; None: the shipped policy"""
+    policy: Annotated[str | None, tyro.conf.arg(
+        metavar="ACTOR|RUN_DIR|scripted|shipped[:NAME]")] = None
+    """actor file or run directory (its actor.pt), scripted, or an actor skyloop ships
+    (shipped:NAME, policy/shipped/__init__.py); None: the default shipped policy"""
     scenario: str = "valley"
     """a world, or family:NAME with --worlds"""
     # world seeds never drawn in training (sitl/world/families.py)
