@@ -47,6 +47,84 @@ def margin(rates: dict[str, float]) -> float:
     return min(rates[f] - GOALS[f] for f in GOALS)
 
 
+def validate(run: Path, episodes: int = 60, worlds: int = 20) -> list[dict]:
+    """Every kept actor of ``run`` on the validation worlds of every family; rows are
+    appended to ``RUN/selection.jsonl`` as they come and a rerun skips what is there."""
+    from policy.training.evaluate import evaluate
+
+    log = run / "selection.jsonl"
+    done = [json.loads(line) for line in log.open()] if log.is_file() else []
+    done = [d for d in done if (d["episodes"], d["worlds"]) == (episodes, worlds)]
+    seen = {(d["episode"], d["family"]) for d in done}
+    for episode, path in actors(run):
+        for family in GOALS:
+            if (episode, family) in seen:
+                continue
+            s = evaluate(str(path), f"family:{family}", episodes, worlds=worlds,
+                         validation=True, progress=False)
+            row = {"episode": episode, "family": family, "actor": str(path),
+                   "success": s["success_rate"], "collision": s["collision_rate"],
+                   "timeout": s["timeout_rate"], "episodes": s["episodes"],
+                   "worlds": worlds}
+            done.append(row)
+            with log.open("a") as f:
+                f.write(json.dumps(row) + "\n")
+            print(f"{run.name} ep {episode:5d} {family:8s} success {row['success']:.1%} "
+                  f"timeout {row['timeout']:.1%}", flush=True)
+    return done
+
+
+def success_table(rows: list[dict]) -> dict[int, dict[str, float]]:
+    """{training episode: {family: validation success}} of the actors seen on every
+    family."""
+    table: dict[int, dict[str, float]] = {}
+    for d in rows:
+        table.setdefault(d["episode"], {})[d["family"]] = d["success"]
+    return {e: r for e, r in table.items() if set(r) == set(GOALS)}
+
+
+def pick(run: Path, rows: list[dict], episodes: int, worlds: int) -> dict:
+    """The actor of ``run`` with the largest worst margin (earliest on ties), written
+    to ``RUN/selection.json``."""
+    complete = success_table(rows)
+    if not complete:
+        raise SystemExit(f"{run}: no actor evaluated on every family yet")
+    best = max(sorted(complete), key=lambda e: margin(complete[e]))  # earliest on ties
+    actor = next(d["actor"] for d in rows if d["episode"] == best)
+    choice = {"run": str(run), "episode": best, "actor": actor,
+              "validation_success": complete[best], "margin": margin(complete[best]),
+              "goals": GOALS, "episodes_per_family": episodes, "worlds": worlds}
+    (run / "selection.json").write_text(json.dumps(choice, indent=2))
+    print(f"pick: episode {best} ({actor}), worst margin {choice['margin']:+.1%}: "
+          + ", ".join(f"{f} {v:.0%}" for f, v in complete[best].items()))
+    return choice
+
+
+def plot(run: Path, rows: list[dict], best: int, out: Path, episodes: int,
+         worlds: int) -> None:
+    """Validation success per family over training, the pick marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    table = success_table(rows)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for family in GOALS:
+        xs = sorted(table)
+        ax.plot(xs, [table[e][family] for e in xs], marker="o", ms=3, label=family)
+    ax.axvline(best, color="k", lw=0.8, ls="--", label=f"pick (episode {best})")
+    ax.set(title=f"{run.name}: validation worlds ({worlds} per family, {episodes} "
+                 f"episodes)", xlabel="training episode of the actor", ylabel="success",
+           ylim=(0, 1))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    print(f"wrote {out}")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("run", type=Path)
@@ -54,61 +132,10 @@ def main() -> None:
     p.add_argument("--worlds", type=int, default=20, help="validation worlds per family")
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args()
-
-    from policy.training.evaluate import evaluate
-
-    log = args.run / "selection.jsonl"
-    done = [json.loads(line) for line in log.open()] if log.is_file() else []
-    seen = {(d["episode"], d["family"]) for d in done}
-    for episode, path in actors(args.run):
-        for family in GOALS:
-            if (episode, family) in seen:
-                continue
-            s = evaluate(str(path), f"family:{family}", args.episodes, worlds=args.worlds,
-                         validation=True, progress=False)
-            row = {"episode": episode, "family": family, "actor": str(path),
-                   "success": s["success_rate"], "collision": s["collision_rate"],
-                   "timeout": s["timeout_rate"], "episodes": s["episodes"],
-                   "worlds": args.worlds}
-            done.append(row)
-            with log.open("a") as f:
-                f.write(json.dumps(row) + "\n")
-            print(f"ep {episode:5d} {family:8s} success {row['success']:.1%} "
-                  f"timeout {row['timeout']:.1%}", flush=True)
-
-    table: dict[int, dict[str, float]] = {}
-    for d in done:
-        table.setdefault(d["episode"], {})[d["family"]] = d["success"]
-    complete = {e: r for e, r in table.items() if set(r) == set(GOALS)}
-    if not complete:
-        raise SystemExit(f"{args.run}: no actor evaluated on every family yet")
-    best = max(sorted(complete), key=lambda e: margin(complete[e]))  # earliest on ties
-    actor = next(d["actor"] for d in done if d["episode"] == best)
-    pick = {"episode": best, "actor": actor, "validation_success": complete[best],
-            "margin": margin(complete[best]), "goals": GOALS,
-            "episodes_per_family": args.episodes, "worlds": args.worlds}
-    (args.run / "selection.json").write_text(json.dumps(pick, indent=2))
-    print(f"pick: episode {best} ({actor}), worst margin {pick['margin']:+.1%}: "
-          + ", ".join(f"{f} {v:.0%}" for f, v in complete[best].items()))
+    rows = validate(args.run, args.episodes, args.worlds)
+    choice = pick(args.run, rows, args.episodes, args.worlds)
     if args.plot:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(7, 4))
-        for family in GOALS:
-            xs = sorted(e for e in table if family in table[e])
-            ax.plot(xs, [table[e][family] for e in xs], marker="o", ms=3, label=family)
-        ax.axvline(best, color="k", lw=0.8, ls="--", label=f"pick (episode {best})")
-        ax.set(title=f"{args.run.name}: validation worlds ({args.worlds} per family, "
-                     f"{args.episodes} episodes)", xlabel="training episode of the actor",
-               ylabel="success", ylim=(0, 1))
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(args.plot, dpi=110)
-        print(f"wrote {args.plot}")
+        plot(args.run, rows, choice["episode"], args.plot, args.episodes, args.worlds)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,141 @@
+"""From a finished mixture grid to a shipped policy (issue 14), by validation worlds only.
+
+1. Every finished trial of the grid: each kept actor on the validation worlds of every
+   family (``pick_by_validation.validate``; resumable, ``TRIAL/selection.jsonl``), and
+   the trial's pick (largest worst margin over the goals).
+2. Across trials: the pick with the largest worst margin (earliest trial on ties).
+3. That one actor, once, on the **held-out** worlds (``--heldout-episodes`` per family
+   over ``--heldout-worlds`` worlds, episode seeds from 1,000,000,000), beside the
+   valley-only policy's table (``experiments/general/baseline-valley-policy-*.json``):
+   the issue's goals and "no family worse than the valley policy" checked.
+4. ``--out policy/shipped/NAME``: the actor, its training CSV and curve, the held-out
+   JSONs, the validation table and a README with the commands and the table. Making it
+   the default (``policy/shipped/__init__.py``) is a decision left to a person, with the
+   table in front of them.
+
+    python experiments/general/ship.py experiments/general_mix [--out policy/shipped/NAME]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+from pick_by_validation import GOALS, margin, pick, plot, validate
+
+HERE = Path(__file__).resolve().parent
+
+
+def heldout(actor: str, out: Path, episodes: int, worlds: int) -> dict[str, dict]:
+    """The actor on the held-out worlds of each family (cached as JSON in ``out``)."""
+    from policy.training.evaluate import evaluate
+
+    out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for family in GOALS:
+        path = out / f"eval-heldout-{family}.json"
+        if path.is_file() and json.loads(path.read_text()).get("policy", "").endswith(actor):
+            results[family] = json.loads(path.read_text())
+            continue
+        results[family] = evaluate(actor, f"family:{family}", episodes, worlds=worlds,
+                                   json_path=path, progress=False)
+        print(f"held out {family}: {results[family]['success_rate']:.1%}", flush=True)
+    return results
+
+
+def table(results: dict[str, dict]) -> tuple[str, bool]:
+    """The held-out table beside the valley policy's, and whether every goal holds."""
+    lines = ["| family | this policy (95% CI) | collision | timeout | valley-only policy | "
+             "goal |", "|---|---|---|---|---|---|"]
+    met = True
+    for family, goal in GOALS.items():
+        s = results[family]
+        base = json.loads((HERE / f"baseline-valley-policy-{family}.json").read_text())
+        lo, hi = s["success_ci95"]
+        ok = s["success_rate"] >= goal and s["success_rate"] >= base["success_rate"]
+        met &= ok
+        lines.append(f"| {family} | {s['success_rate']:.1%} ({lo:.1%}-{hi:.1%}) | "
+                     f"{s['collision_rate']:.1%} | {s['timeout_rate']:.1%} | "
+                     f"{base['success_rate']:.1%} | >= {goal:.0%} and >= valley policy: "
+                     f"{'met' if ok else '**not met**'} |")
+    return "\n".join(lines), met
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("grid", type=Path, help="the mixture grid's output directory")
+    p.add_argument("--episodes", type=int, default=60, help="validation, per family")
+    p.add_argument("--worlds", type=int, default=20, help="validation worlds per family")
+    p.add_argument("--heldout-episodes", type=int, default=200)
+    p.add_argument("--heldout-worlds", type=int, default=50)
+    p.add_argument("--out", type=Path, default=None, help="policy/shipped/NAME to write")
+    args = p.parse_args()
+
+    trials = sorted(d for d in args.grid.iterdir() if (d / "result.json").is_file())
+    if not trials:
+        raise SystemExit(f"{args.grid}: no finished trial (TRIAL/result.json)")
+    picks = []
+    for trial in trials:
+        rows = validate(trial, args.episodes, args.worlds)
+        picks.append(pick(trial, rows, args.episodes, args.worlds))
+        plot(trial, rows, picks[-1]["episode"], trial / "validation.png", args.episodes,
+             args.worlds)
+    best = max(picks, key=lambda c: c["margin"])  # the first trial on ties
+    (args.grid / "selection.json").write_text(json.dumps(
+        {"pick": best, "trials": picks}, indent=2) + "\n")
+    print(f"grid pick: {best['actor']} (worst validation margin {best['margin']:+.1%})")
+    if args.out is None:
+        return
+
+    results = heldout(best["actor"], args.out, args.heldout_episodes, args.heldout_worlds)
+    text, met = table(results)
+    run = Path(best["run"])
+    shutil.copyfile(best["actor"], args.out / "actor.pt")
+    for name in ("episodes.csv", "curve.png", "config.json", "validation.png",
+                 "selection.jsonl"):
+        if (run / name).is_file():
+            shutil.copyfile(run / name, args.out / name)
+    validation = "\n".join(
+        f"| {Path(c['run']).name} | {c['episode']} | " + " | ".join(
+            f"{c['validation_success'][f]:.0%}" for f in GOALS) + f" | {c['margin']:+.1%} |"
+        for c in picks)
+    (args.out / "README.md").write_text(f"""# Shipped policy: {args.out.name}
+
+`actor.pt` is the actor kept at training episode {best['episode']} of `{run.name}` in the
+mixture grid `{args.grid}` (`config.json`: its training settings; `episodes.csv`,
+`curve.png`: its training run), picked by validation worlds only:
+
+    python experiments/general/ship.py {args.grid} --out {args.out}
+
+## The pick: validation worlds ({args.worlds} per family, {args.episodes} episodes each)
+
+Each trial's kept actors were flown on validation worlds (seeds 2,147,483,648 + i); a
+trial's pick is the actor with the largest worst margin over the goals
+(min over families of success - goal; `validation.png`), and the grid's pick the best of
+those.
+
+| trial | episode | {' | '.join(GOALS)} | worst margin |
+|---|---|{'---|' * len(GOALS)}---|
+{validation}
+
+## Held out: {args.heldout_episodes} episodes per family
+
+Over {args.heldout_worlds} worlds per family never trained or validated on: world seeds
+3,221,225,472 + i, episode seeds from 1,000,000,000 (`eval-heldout-*.json`):
+
+    skyloop eval --policy {args.out / 'actor.pt'} --scenario family:FAMILY \\
+        --worlds {args.heldout_worlds} --episodes {args.heldout_episodes}
+
+{text}
+
+{'Every goal of issue 14 holds.' if met else '**Not every goal of issue 14 holds.**'}
+""")
+    print(text)
+    print(f"wrote {args.out}; every goal {'met' if met else 'NOT met'}; worst margin "
+          f"{margin({f: results[f]['success_rate'] for f in GOALS}):+.1%} held out")
+
+
+if __name__ == "__main__":
+    main()
