@@ -22,9 +22,10 @@ Each row times ``steps`` env steps after ``warmup`` steps (random actions, no up
 then a few hundred updated steps so every loop is at speed); the rows are interleaved
 ``repeats`` times and the medians are reported, so load from other processes hits all
 alike. Also the collector's own rate (env steps/s of ``Collector.round`` with the actor
-acting, no learner) for 1 and 4 envs in one process: the ceiling of the parallel mode.
+acting, no learner) for 1 and 4 envs in one process: the ceiling of the parallel mode;
+with the shipped actor (headline rows) and with seeded random actors (``_collector``).
 
-Run: ``python -m benchmarks.bench_train [--quick] [--json out.json]``.
+Run: ``python -m benchmarks.bench_train [--quick] [--collector-only] [--json out.json]``.
 """
 
 from __future__ import annotations
@@ -116,19 +117,35 @@ def _sb3(steps: int, seed: int) -> float | None:
     return (s1 - s0) / (t1 - t0)
 
 
-def _collector(n_envs: int, steps: int) -> float:
-    """Env steps/s of the collector alone (actor + noise acting, no learner)."""
-    from policy.algorithms.networks import Actor
+def _collector(n_envs: int, steps: int, actor: str = "shipped", seed: int = 0) -> float:
+    """Env steps/s of the collector alone (actor + noise acting, no learner).
 
-    actor = Actor().requires_grad_(False)
+    ``actor="shipped"``: the shipped valley actor, a policy that flies, as the collector
+    runs for most of a training run; ``"random"``: a freshly initialised actor (seeded
+    with ``seed``), as at the start of one. The rate follows the states the actor flies
+    into: the LiDAR's terrain cast is most of a step and costs 0.28-0.58 ms a scan
+    between random actors (0.36 with the shipped one; 0.03 under uniform random actions,
+    which keep the vehicle level near its start). An unseeded random actor, as this row
+    used before, made it swing 750-1,750 between runs.
+    """
+    from policy.algorithms.networks import Actor
+    from policy.algorithms.td3 import load_actor
+    from policy.shipped import SHIPPED_POLICY
+
+    if actor == "shipped":
+        net = load_actor(SHIPPED_POLICY)
+    else:
+        torch.manual_seed(seed)
+        net = Actor()
+    net.requires_grad_(False)
 
     def act(states: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         with torch.no_grad():
-            a = actor(torch.as_tensor(states).reshape(len(states), -1)).numpy()
+            a = net(torch.as_tensor(states).reshape(len(states), -1)).numpy()
         return explore(a, rng, 0.2, 2.0)
 
     envs = [UavNavEnv(scenario="valley") for _ in range(n_envs)]
-    c = Collector(envs, partial(episode_seed, 0), np.random.default_rng(0), 2.0, 4,
+    c = Collector(envs, partial(episode_seed, seed), np.random.default_rng(seed), 2.0, 4,
                   start_steps=0)
     for _ in range(max(1, 100 // n_envs)):
         c.round(act)
@@ -136,6 +153,20 @@ def _collector(n_envs: int, steps: int) -> float:
     while c.steps - s0 < steps:
         c.round(act)
     return (c.steps - s0) / (time.perf_counter() - t0)
+
+
+def collector_rows(steps: int, repeats: int) -> dict[str, Any]:
+    """The collector alone: 1 and 4 envs with the shipped actor, and 1 env with random
+    actors (seeds 0..repeats-1), interleaved; medians."""
+    runs: dict[str, list[float]] = {"shipped_1env": [], "shipped_4envs": [], "random_1env": []}
+    for r in range(repeats):
+        runs["shipped_1env"].append(_collector(1, steps, "shipped", seed=r))
+        runs["shipped_4envs"].append(_collector(4, steps, "shipped", seed=r))
+        runs["random_1env"].append(_collector(1, steps, "random", seed=r))
+    return {"collector_env_steps_per_s": statistics.median(runs["shipped_1env"]),
+            "collector_4envs_env_steps_per_s": statistics.median(runs["shipped_4envs"]),
+            "collector_random_actor_env_steps_per_s": statistics.median(runs["random_1env"]),
+            "collector_runs": runs}
 
 
 def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
@@ -164,8 +195,7 @@ def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
         "speedup_vs_sync": med["parallel"] / med["sync"],
         "speedup_fp32_vs_sync_fp32": med["parallel_fp32"] / med["sync_fp32"],
         "precision": resolve_precision(TrainConfig.precision, "cpu"),
-        "collector_env_steps_per_s": _collector(1, min(steps, 1000)),
-        "collector_4envs_env_steps_per_s": _collector(4, min(steps, 1000)),
+        **collector_rows(min(steps, 2000), repeats),
         "config": {"steps_timed": steps, "warmup_random": START, "warmup_updated": SETTLE,
                    "repeats": repeats, "learner_threads": threads, "sync_threads": 1,
                    "precision": f"{TrainConfig.precision} (the default; fp32 rows: "
@@ -188,9 +218,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--threads", type=int, default=1, help="the learner's torch threads")
+    ap.add_argument("--collector-only", action="store_true",
+                    help="only the collector rows (a minute; no training)")
     ap.add_argument("--json")
     args = ap.parse_args()
-    out = run(args.quick, args.threads)
+    torch.set_num_threads(1)
+    out = (collector_rows(600 if args.quick else 2000, 1 if args.quick else 3)
+           if args.collector_only else run(args.quick, args.threads))
     print(json.dumps(out, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2))
