@@ -31,7 +31,7 @@ test: $(STAMP)
 	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile -m "not docker and not timing" --durations=25
 	$(PY) -m pytest -m "timing and not docker" --durations=5
 
-# The stack in containers (tests/test_docker_compose.py: builds the image, minutes on a
+# The stack in containers (tests/stack/test_docker_compose.py: builds the image, minutes on a
 # fresh machine); needs a Docker engine and compose v2 (docker/setup-engine.sh), else skips.
 test-docker: $(STAMP)
 	$(PY) -m pytest -m docker --durations=10

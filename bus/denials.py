@@ -10,7 +10,7 @@ writer, not to stderr) and counts the refusals (:class:`Denials`); every line th
 own ``RUST_LOG`` would have shown is passed on unchanged, the rest (the decisions turned
 on only to be counted) is read and dropped.
 
-What zenoh 1.10.2 logs (measured, ``tests/test_bus_security.py``):
+What zenoh 1.10.2 logs (measured, ``tests/bus/test_bus_security.py``):
 
 * A message on a key expression its sender declared (a publisher's puts, the usual
   case): one line per message, ``Using cached result: <zid> is unauthorized to Put

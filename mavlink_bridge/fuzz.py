@@ -1,7 +1,7 @@
 """A seeded generator of invalid MAVLink frames, each with the counters it must move.
 
 Pure (no sockets, no clock): :class:`FrameFuzzer` yields :class:`FuzzFrame` datagrams
-for the vehicle's fuzz test (``tests/test_mavlink_fuzz.py``) and benchmark
+for the vehicle's fuzz test (``tests/mavlink/test_mavlink_fuzz.py``) and benchmark
 (``benchmarks/bench_mavlink_fuzz.py``). Every frame is meant to be refused; ``expect``
 says by which counters (:attr:`mavlink_bridge.vehicle_link.VehicleLink.counters` names,
 ``rx_*`` without the link prefix), or is None where the outcome is not predictable

@@ -24,7 +24,7 @@ torch releases the GIL inside its kernels, so with one torch thread per Python t
 them. Beside a collector process on a 2-core machine that gained 10-13% in two
 benchmark runs and lost 17-22% in a third, when the host took part of the CPU
 (``benchmarks/RESULTS.md``, issue 9). Deterministic given the mini-batches (each tensor
-has one writer at a time; tests/test_pipeline.py checks the schedule bit for bit); the
+has one writer at a time; tests/policy/test_pipeline.py checks the schedule bit for bit); the
 parallel training mode as a whole is not (the collector's timing); ``--sync`` never
 uses it.
 """

@@ -12,7 +12,7 @@ Implements the physics side of skyloop's vehicle (issue 2, section 2):
   FlightControl.xml puts on rate references (yaw rates up to 2 rad/s must be reachable).
   All of it runs inside JSBSim at every physics step (1/500 s), so Python only sets four
   properties at the outer-loop rate (``set_commands``).
-- Force balance, measured (and checked in tests/test_flight_model.py): the hover
+- Force balance, measured (and checked in tests/sitl/test_flight_model.py): the hover
   collective is 0.4068 (specific force = g at sea level), not the 0.45-0.5 once noted;
   with altitude held, a steady 10 deg tilt accelerates at ~0.97 g tan(10 deg) (20 deg:
   ~0.95, body drag growing with speed), i.e. the rigid-body relation holds once the

@@ -8,7 +8,7 @@ value, an unknown choice, a missing or unknown flag) into argparse's one line th
 tyro's parse-error hook, and a ``ValueError`` the dataclass raises on construction
 (``__post_init__``) into the same line. The hook is tyro's private, experimental API
 (``tyro._errors``, tyro 1.0): should it change, errors fall back to tyro's own boxes,
-still exit 2, and tests/test_cli_generated.py fails.
+still exit 2, and tests/stack/test_cli_generated.py fails.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from ``mavlink_bridge.vehicle_link.VehicleLinkConfig`` and
 ``mavlink_bridge.offboard_client.OffboardClientConfig``. The sim's
 (``sitl.node.step.SimNodeConfig``) are not imported here (seconds of imports before
 ``--help``); :class:`SimCommand` always passes its values on, and
-tests/test_cli_nodes.py checks both agree. Only light modules are imported here.
+tests/stack/test_cli_nodes.py checks both agree. Only light modules are imported here.
 """
 
 from __future__ import annotations
@@ -267,7 +267,7 @@ class SimCommand(SimRules, ClockFlags, BusFlags):
     """``skyloop sim``: the simulator node (``sitl.node.node.SimNode``). Its defaults repeat
     ``sitl.node.step.SimNodeConfig``'s (episodes, seed, lockstep timeout...) on purpose:
     importing the simulator costs every command line ~1 s (JSBSim, Embree), and this
-    module is read for each one; tests/test_cli_nodes.py
+    module is read for each one; tests/stack/test_cli_nodes.py
     (``test_defaults_agree_with_the_configs_they_feed``) fails when they part."""
 
     episodes: Annotated[int, tyro.conf.arg(metavar="N")] = 1

@@ -26,7 +26,7 @@ from bus.log.writer import EpisodeLogWriter, read_episodes
 from bus.node import Bus
 from bus.session import SessionConfig, open_session
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCAN = np.random.default_rng(0).normal(scale=10, size=(28_800, 3)).astype(np.float32)
 
 

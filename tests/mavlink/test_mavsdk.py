@@ -35,7 +35,7 @@ from mavsdk.plugins.telemetry import FlightMode, LandedState  # noqa: E402
 
 from bus import params as table  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 TAKEOFF_ALT = 3.5  # m, set through MIS_TAKEOFF_ALT (default 2.5)
 
 

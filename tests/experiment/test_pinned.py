@@ -16,7 +16,7 @@ import time
 import uuid
 from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "pinned.sh"
+SCRIPT = Path(__file__).resolve().parents[2] / "experiments" / "pinned.sh"
 
 
 def git(repo: Path, *args: str) -> str:

@@ -374,7 +374,7 @@ def flight(tmp_path_factory):
            "--scenario", "dynamic", "--episodes", "3", "--max-steps", "60",
            "--policy", "scripted", "--log-dir", str(out), "--log-compression", "lz4"]
     t0 = time.time_ns()
-    proc = subprocess.run(cmd, cwd=Path(__file__).resolve().parent.parent,
+    proc = subprocess.run(cmd, cwd=Path(__file__).resolve().parents[2],
                           capture_output=True, text=True, timeout=300)
     t1 = time.time_ns()
     assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -14,7 +14,7 @@ status carries both clocks (``header.stamp``: stack time; ``vehicle_time``: the
 commander's), which run together within an episode, so a status of the setpoint's
 episode gives the setpoint's vehicle time (see :func:`assert_failsafe_timing`). The
 status's own ``last_setpoint_time`` (the vehicle's record of the newest setpoint it took,
-which tests/test_stack_up.py times the failsafe by) must agree with that mapping.
+which tests/stack/test_stack_up.py times the failsafe by) must agree with that mapping.
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ from bus.log.writer import (
     recover_log,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PTS = np.random.default_rng(0).normal(scale=10, size=(2000, 3)).astype(np.float32)
 STEPS = 6
 PER_EPISODE = 2 + 3 * STEPS  # START, END, and lidar + odom + cmd_vel per step

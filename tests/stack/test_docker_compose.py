@@ -52,7 +52,7 @@ from mavlink_bridge.modes import AutoSubMode, MainMode, decode_custom_mode  # no
 
 pytestmark = [pytest.mark.slow, pytest.mark.docker]  # make test-docker
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DOCKER = ROOT / "docker"
 PROJECT = "skyloop-test"
 IMAGE = "skyloop:test"

@@ -37,7 +37,7 @@ from bus.session import SessionConfig  # noqa: E402
 from mavlink_bridge import frames  # noqa: E402
 from mavlink_bridge.modes import encode_custom_mode  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ORIGIN = (47.397742, 8.545594, 488.0)
 OFFBOARD = encode_custom_mode(6, 0)
 # Valley, seed 1000: the vehicle stands at (-10.3, -9.1); these are in free terrain.

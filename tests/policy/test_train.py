@@ -110,7 +110,7 @@ def test_killed_run_resumes_from_last_checkpoint(tmp_path):
     """The parallel mode (collector process + learner) SIGKILLed: its collector dies with
     it, and --resume continues the episodes without a gap. (--sync runs: resumed to the
     same CSV in test_same_seed_same_csv_and_resume_continues_exactly, and SIGKILLed in a
-    grid in tests/test_experiment.py.)"""
+    grid in tests/experiment/test_experiment.py.)"""
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "skyloop", "train", "--episodes", "40", "--seed", "5",
            "--start-steps", "200", "--checkpoint-every", "2", "--out", str(out), "--envs", "2"]

@@ -31,7 +31,7 @@ from skyloop import launcher
 from skyloop.cli.stack import parse_node
 from skyloop.launcher import Child, Graph, nodes_of, ready_waits
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class Seen:

@@ -78,7 +78,7 @@ def test_flooded_then_sigterm_exits_fast_and_clean(tmp_path):
     its last line counts what it published and dropped (both > 0: it was overloaded)."""
     hub = f"tcp/127.0.0.1:{free_port()}"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "skyloop", "perception"], cwd=Path(__file__).parent.parent,
+        [sys.executable, "-m", "skyloop", "perception"], cwd=Path(__file__).resolve().parents[2],
         env=dict(os.environ, SKYLOOP_ZENOH_HUB=hub, PYTHONUNBUFFERED="1"),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         start_new_session=True, preexec_fn=started_blocked)

@@ -17,7 +17,7 @@ from bus.ros.view import face_colours, fan_triangles
 from skyloop.launcher import free_port
 from skyloop.viewer import parse_target
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SKYLOOP = [sys.executable, "-m", "skyloop"]
 #: what every view of a flown episode holds
 ENTITIES = {"/world/terrain", "/world/obstacles", "/world/vehicle", "/world/vehicle/body",

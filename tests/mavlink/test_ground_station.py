@@ -32,7 +32,7 @@ from bus import params as table  # noqa: E402
 from mavlink_bridge.modes import AUTO_TAKEOFF, encode_custom_mode  # noqa: E402
 from skyloop import launcher  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ARMED = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
 OFFBOARD_MODE = encode_custom_mode(6, 0)
 

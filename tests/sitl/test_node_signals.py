@@ -54,7 +54,7 @@ pytestmark = pytest.mark.timing  # wall-clock deadlines: run alone (conftest, Ma
 SEED = int(os.environ.get("SKYLOOP_SIGNAL_SEED", "13"))  # another seed: other moments
 LIMIT_S = 2.0  # issue 13: from the signal to the exit
 SIGNALS = (signal.SIGTERM, signal.SIGINT)
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 NODES = {  # node -> (arguments, the line it prints once up and waiting)
     "sim": (["sim", "--wait-go"], "SKYLOOP-SIM-READY"),  # its ground phase, until "go"
     "perception": (["perception"], "perception up"),

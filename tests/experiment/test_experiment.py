@@ -82,7 +82,7 @@ def test_a_bad_grid_names_the_file_and_the_field(tmp_path, old, new, field):
     assert str(path) in str(err.value) and field in str(err.value)
 
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 COMMITTED_GRIDS = sorted(p.relative_to(REPO) for d in ("experiments", "experiments/general_state")
                          for p in (REPO / d).glob("*.toml"))
 

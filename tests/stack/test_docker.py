@@ -2,8 +2,8 @@
 
 Without a Docker engine: every node service's command is parsed by the real parser and
 run with ``--help`` (a process per subcommand); the graph itself runs through
-``skyloop up --router`` in ``tests/test_stack_up.py`` (same nodes, client mode) and, with an
-engine, through docker compose in ``tests/test_docker_compose.py``.
+``skyloop up --router`` in ``tests/stack/test_stack_up.py`` (same nodes, client mode) and, with an
+engine, through docker compose in ``tests/stack/test_docker_compose.py``.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import yaml
 
 from skyloop.cli.stack import bridge_link_config, parse_node, policy_client_config
 
-DOCKER = Path(__file__).resolve().parent.parent / "docker"
+DOCKER = Path(__file__).resolve().parents[2] / "docker"
 NODES = {"sim", "perception", "policy", "bridge", "record"}
 
 

@@ -42,7 +42,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 from bus import params as table  # noqa: E402
 from mavlink_bridge.modes import AUTO_LAND, OFFBOARD  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SET_OFFBOARD = "long DO_SET_MODE 1 6 0"  # CUSTOM_MODE_ENABLED, PX4 main mode OFFBOARD
 SET_LAND = "long DO_SET_MODE 1 4 6"  # AUTO (4), sub mode LAND (6)
 FLIGHT = ["param show COM_OF_LOSS_T", "param set MPC_XY_VEL_MAX 0.8", "arm throttle",

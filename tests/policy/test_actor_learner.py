@@ -39,7 +39,7 @@ from policy.nodes.weights import WEIGHTS_LINE, decode_actor
 from policy.training.evaluate import SHIPPED_POLICY
 from skyloop.launcher import SIM_READY_LINE
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 VEHICLES = ("uav1", "uav2")
 # enough episodes that the learner's first versions arrive before the last ones start, even
 # on a loaded machine (with 8, a loaded run once saw its first version after the last)

@@ -471,7 +471,7 @@ def test_other_compose_files_parse():
     """The vehicle and companion compose files start nodes with flags that parse."""
     import yaml
 
-    docker = Path(__file__).resolve().parent.parent / "docker"
+    docker = Path(__file__).resolve().parents[2] / "docker"
     seen = set()
     for path in sorted(docker.glob("compose*.yaml")):
         for service in (yaml.safe_load(path.read_text()) or {}).get("services", {}).values():
@@ -576,7 +576,7 @@ def test_health_options_and_the_compose_health_checks(capsys):
         router="", ready=("policy",))
     assert parse_health(["--router", "tcp/r:7447", "--udp", "1", "--udp", "2"]) == \
         HealthCommand(router="tcp/r:7447", udp=(1, 2))
-    docker = Path(__file__).resolve().parent.parent / "docker"
+    docker = Path(__file__).resolve().parents[2] / "docker"
     checks = [service["healthcheck"]["test"][4:] for path in docker.glob("compose*.yaml")
               for service in ((yaml.safe_load(path.read_text()) or {}).get("services") or {}
                               ).values() if service and "healthcheck" in service]

@@ -23,7 +23,7 @@ from sitl.world.families import (
 from sitl.world.scenario import ScenarioError, load_scenario
 from sitl.world.world import World
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("spec,says", [

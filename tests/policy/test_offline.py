@@ -92,7 +92,7 @@ def test_a_command_answering_the_previous_episode_is_left_out(logged):
     episode's START (the bridge's path is not the sim's): the next episode takes its
     actions by the steps they answer. (The ended one finds its last among the file's
     commands by stamp in a stack log, whose stamps count over the run:
-    tests/test_stack_up.py; this env log's restart each episode.)"""
+    tests/stack/test_stack_up.py; this env log's restart each episode.)"""
     path, _ = logged
     episodes, _ = read_episodes(path)
     whole = [rebuild_episode(ep, RewardConfig()) for ep in episodes[:2]]

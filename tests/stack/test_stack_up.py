@@ -32,7 +32,7 @@ from bus.log.reader import EpisodeLogReader, read_episodes
 from skyloop import launcher
 
 SEED, EPISODES = 1000, 2
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 
@@ -99,7 +99,7 @@ def test_summary_matches_env(runs, env_episodes):
         assert "cpu per control step after go (ms): " in stdout
         # skyloop.placement, as the kernel reports each child's affinity at "go": with the
         # recorder beside the chain, --pin auto leaves every node free
-        # (tests/test_placement.py flies pinned chains)
+        # (tests/stack/test_placement.py flies pinned chains)
         cpus, mine = summary["cpus"], sorted(os.sched_getaffinity(0))
         assert not summary["pinned"] and "pinned (--pin)" not in stdout, stdout
         assert set(cpus) == set(cpu) and all(v == mine for v in cpus.values()), cpus
@@ -432,7 +432,7 @@ class StatusEvents:
 
 def assert_failsafe_timing(events: list[tuple[str, float, float]], loss_s: float,
                            hold_land_s: float) -> str | None:
-    """The failsafe's timing in the vehicle's clock (as tests/test_vehicle_failsafe.py
+    """The failsafe's timing in the vehicle's clock (as tests/sitl/test_vehicle_failsafe.py
     has it in lockstep): HOLD at the first control step after no setpoint came for
     COM_OF_LOSS_T (``loss_s``), LAND SKY_HOLD_LAND_T (``hold_land_s``) after HOLD, each to
     one control period; with no LAND, whatever ended the hold (a crash, the restarted

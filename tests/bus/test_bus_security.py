@@ -192,7 +192,7 @@ class RouterProcess:
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "skyloop", "router", "--listen", self.endpoint,
              "--zenoh-config", str(certs / "router.json5")],
-            cwd=Path(__file__).resolve().parent.parent,
+            cwd=Path(__file__).resolve().parents[2],
             env={**{k: v for k, v in os.environ.items() if k != "RUST_LOG"}, **env},
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.sessions: list[Bus] = []
@@ -341,7 +341,7 @@ def test_the_stack_flies_on_a_secured_bus(certs, tmp_path):
 
     full = make_certs(tmp_path / "certs")  # every node of a stack, the launcher too
     make_certs(full, ("gcs",))  # router.json5 written without it: a read-only tool
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     udp = [str(free_port(socket.SOCK_DGRAM)) for _ in range(4)]
     hub = f"tls/localhost:{free_port()}"
     cmd = [sys.executable, "-m", "skyloop", "up", "--router", "--zenoh-config-dir", str(full),

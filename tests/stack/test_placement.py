@@ -63,7 +63,7 @@ def test_up_pins_the_lockstep_chain(tmp_path, recorded):
     from loopback import up_args
 
     out = tmp_path / "summary.json"
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     extra = ("--router", "--log-dir", str(tmp_path / "log"), "--pin", "chain") if recorded \
         else ()
     r = subprocess.run(up_args("--episodes", "1", "--policy", "scripted", "--json", str(out),
