@@ -8,6 +8,8 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from typing import Any
 
 from skyloop.launcher import free_port
 from skyloop.signals import block_until_started
@@ -82,6 +84,15 @@ def wait_for(cond, timeout: float = 10.0, what: str = "condition", poll: float =
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out waiting for {what}")
         time.sleep(poll)
+
+
+def vehicle_messages(conn: Any, seconds: float = 0.05, system: int = 1) -> Iterator[Any]:
+    """The MAVLink messages from ``system`` that reach a pymavlink ``conn`` within ``seconds``."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        msg = conn.recv_match(blocking=True, timeout=0.01)
+        if msg is not None and msg.get_srcSystem() == system:
+            yield msg
 
 
 def interrupt(proc: subprocess.Popen, timeout: float = 15.0) -> str:

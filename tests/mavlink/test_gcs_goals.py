@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from loopback import free_port, interrupt, sigint_default
+from loopback import free_port, interrupt, sigint_default, vehicle_messages
 
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
 from pymavlink import mavutil  # noqa: E402
@@ -67,11 +67,7 @@ class Gcs:
         self.mission_acks: list[int] = []
 
     def pump(self, seconds: float = 0.05) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            msg = self.conn.recv_match(blocking=True, timeout=0.01)
-            if msg is None or msg.get_srcSystem() != 1:
-                continue
+        for msg in vehicle_messages(self.conn, seconds):
             kind = msg.get_type()
             if kind == "HEARTBEAT":
                 self.mode = msg.custom_mode

@@ -32,7 +32,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from loopback import free_port, interrupt, sigint_default
+from loopback import free_port, interrupt, sigint_default, vehicle_messages
 
 pytest.importorskip("MAVProxy", reason="MAVProxy not installed (pip install -e '.[test]')")
 os.environ["MAVLINK20"] = "1"  # before mavutil is imported
@@ -104,11 +104,7 @@ class Listener:
         self.landed_state = -1
 
     def pump(self, seconds: float = 0.05) -> None:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            msg = self.conn.recv_match(blocking=True, timeout=0.01)
-            if msg is None or msg.get_srcSystem() != 1:
-                continue
+        for msg in vehicle_messages(self.conn, seconds):
             kind = msg.get_type()
             if kind == "HEARTBEAT":
                 self.heartbeat = msg
