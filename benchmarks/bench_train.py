@@ -157,7 +157,8 @@ def _collector(n_envs: int, steps: int, actor: str = "shipped", seed: int = 0) -
 
 def collector_rows(steps: int, repeats: int) -> dict[str, Any]:
     """The collector alone: 1 and 4 envs with the shipped actor, and 1 env with random
-    actors (seeds 0..repeats-1), interleaved; medians."""
+    actors (seeds 0..repeats-1), interleaved; medians. One torch thread (a collector's)."""
+    torch.set_num_threads(1)
     runs: dict[str, list[float]] = {"shipped_1env": [], "shipped_4envs": [], "random_1env": []}
     for r in range(repeats):
         runs["shipped_1env"].append(_collector(1, steps, "shipped", seed=r))
@@ -169,8 +170,13 @@ def collector_rows(steps: int, repeats: int) -> dict[str, Any]:
             "collector_runs": runs}
 
 
+def sizes(quick: bool) -> tuple[int, int]:
+    """(timed env steps a training row, repeats); the collector rows time at most 2,000."""
+    return (600, 1) if quick else (3000, 3)
+
+
 def run(quick: bool = False, threads: int = 1) -> dict[str, Any]:
-    steps, repeats = (600, 1) if quick else (3000, 3)
+    steps, repeats = sizes(quick)
     rows: dict[str, list[float]] = {"parallel": [], "parallel_target": [],
                                     "parallel_fp32": [], "sync": [], "sync_fp32": [],
                                     "sb3": []}
@@ -222,9 +228,9 @@ def main() -> None:
                     help="only the collector rows (a minute; no training)")
     ap.add_argument("--json")
     args = ap.parse_args()
-    torch.set_num_threads(1)
-    out = (collector_rows(600 if args.quick else 2000, 1 if args.quick else 3)
-           if args.collector_only else run(args.quick, args.threads))
+    steps, repeats = sizes(args.quick)
+    out = (collector_rows(min(steps, 2000), repeats) if args.collector_only
+           else run(args.quick, args.threads))
     print(json.dumps(out, indent=2))
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2))

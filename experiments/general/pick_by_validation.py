@@ -42,6 +42,14 @@ def actors(run: Path) -> list[tuple[int, Path]]:
     return sorted(found)
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer of at least 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
+    return value
+
+
 def margin(rates: dict[str, float]) -> float:
     """The worst family's success minus its goal (>= 0: every goal met)."""
     return min(rates[f] - GOALS[f] for f in GOALS)
@@ -52,6 +60,8 @@ def validate(run: Path, episodes: int = 60, worlds: int = 20) -> list[dict]:
     appended to ``RUN/selection.jsonl`` as they come and a rerun skips what is there."""
     from policy.training.evaluate import evaluate
 
+    if not (run / "episodes.csv").is_file():
+        raise SystemExit(f"{run}: not a training run (no episodes.csv)")
     log = run / "selection.jsonl"
     done = [json.loads(line) for line in log.open()] if log.is_file() else []
     done = [d for d in done if (d["episodes"], d["worlds"]) == (episodes, worlds)]
@@ -90,7 +100,10 @@ def pick(run: Path, rows: list[dict], episodes: int, worlds: int) -> dict:
     if not complete:
         raise SystemExit(f"{run}: no actor evaluated on every family yet")
     best = max(sorted(complete), key=lambda e: margin(complete[e]))  # earliest on ties
-    actor = next(d["actor"] for d in rows if d["episode"] == best)
+    kept = dict(actors(run))  # the file as it is now (the log's path may be elsewhere)
+    if best not in kept:
+        raise SystemExit(f"{run}: the actor of episode {best} is gone (snapshots/)")
+    actor = str(kept[best])
     choice = {"run": str(run), "episode": best, "actor": actor,
               "validation_success": complete[best], "margin": margin(complete[best]),
               "goals": GOALS, "episodes_per_family": episodes, "worlds": worlds}
@@ -128,8 +141,9 @@ def plot(run: Path, rows: list[dict], best: int, out: Path, episodes: int,
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("run", type=Path)
-    p.add_argument("--episodes", type=int, default=60, help="per family and actor")
-    p.add_argument("--worlds", type=int, default=20, help="validation worlds per family")
+    p.add_argument("--episodes", type=positive_int, default=60, help="per family and actor")
+    p.add_argument("--worlds", type=positive_int, default=20,
+                   help="validation worlds per family")
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args()
     rows = validate(args.run, args.episodes, args.worlds)

@@ -23,7 +23,9 @@ import json
 import shutil
 from pathlib import Path
 
-from pick_by_validation import GOALS, margin, pick, plot, validate
+from pick_by_validation import GOALS, margin, pick, plot, positive_int, validate
+
+from policy.shipped import SHIPPED, SHIPPED_DIR
 
 HERE = Path(__file__).resolve().parent
 
@@ -36,8 +38,10 @@ def heldout(actor: str, out: Path, episodes: int, worlds: int) -> dict[str, dict
     results = {}
     for family in GOALS:
         path = out / f"eval-heldout-{family}.json"
-        if path.is_file() and json.loads(path.read_text()).get("policy", "").endswith(actor):
-            results[family] = json.loads(path.read_text())
+        cached = json.loads(path.read_text()) if path.is_file() else {}
+        if (cached.get("policy"), cached.get("episodes"), cached.get("worlds")) \
+                == (f"actor {actor}", episodes, worlds):  # the same actor and settings
+            results[family] = cached
             continue
         results[family] = evaluate(actor, f"family:{family}", episodes, worlds=worlds,
                                    json_path=path, progress=False)
@@ -66,12 +70,19 @@ def table(results: dict[str, dict]) -> tuple[str, bool]:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("grid", type=Path, help="the mixture grid's output directory")
-    p.add_argument("--episodes", type=int, default=60, help="validation, per family")
-    p.add_argument("--worlds", type=int, default=20, help="validation worlds per family")
-    p.add_argument("--heldout-episodes", type=int, default=200)
-    p.add_argument("--heldout-worlds", type=int, default=50)
+    p.add_argument("--episodes", type=positive_int, default=60, help="validation, per family")
+    p.add_argument("--worlds", type=positive_int, default=20,
+                   help="validation worlds per family")
+    p.add_argument("--heldout-episodes", type=positive_int, default=200)
+    p.add_argument("--heldout-worlds", type=positive_int, default=50)
     p.add_argument("--out", type=Path, default=None, help="policy/shipped/NAME to write")
     args = p.parse_args()
+    if not args.grid.is_dir():
+        p.error(f"{args.grid}: no such directory")
+    if args.out is not None and args.out.resolve().name in SHIPPED.values() \
+            and args.out.resolve().parent == SHIPPED_DIR:
+        p.error(f"--out {args.out}: already a shipped policy (policy/shipped/__init__.py); "
+                f"give a new folder")
 
     trials = sorted(d for d in args.grid.iterdir() if (d / "result.json").is_file())
     if not trials:

@@ -26,9 +26,14 @@ MAX_STEPS = 2000  # BipedalWalkerHardcore-v3's time limit
 
 def read_trial(run: Path) -> list[dict]:
     """(env return, steps) of every training episode of a trial, in order."""
-    with (run / "episodes.csv").open() as f:
+    path = run / "episodes.csv"
+    with path.open() as f:
+        reader = csv.DictReader(f)
+        missing = {"base_return", "steps"} - set(reader.fieldnames or [])
+        if missing:
+            raise SystemExit(f"{path}: no column {', '.join(sorted(missing))}")
         return [{"return": float(r["base_return"]), "steps": int(r["steps"])}
-                for r in csv.DictReader(f)]
+                for r in reader]
 
 
 def at_threshold(episodes: list[dict], threshold: float) -> dict:
@@ -56,6 +61,9 @@ def main() -> None:
     print("|---" * (3 + len(args.thresholds)) + "|")
     for run in runs:
         episodes = read_trial(run)
+        if not episodes:
+            print(f"{run.name}: no episode yet, left out")
+            continue
         seed = run.name.rpartition("-s")[2]
         cells = [at_threshold(episodes, t) for t in args.thresholds]
         rows.append({"trial": run.name, "episodes": len(episodes),

@@ -91,6 +91,13 @@ class LearnerConfig:
         if "*" in self.vehicles and len(self.vehicles) > 1:
             raise ConfigError("vehicles", "'*' (every vehicle) or a list of names, not both")
         check_at_least(self, self.AT_LEAST)
+        if self.init_actor not in (None, "scratch"):
+            from policy.shipped import policy_path
+
+            try:  # an unknown shipped:NAME, before the bus opens
+                policy_path(self.init_actor, flag="--init-actor")
+            except ValueError as err:
+                raise ConfigError("init_actor", str(err).removeprefix("--init-actor ")) from None
         for name, flag_name in (("updates_per_step", "updates_per_step"), ("grace_s", "grace")):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):

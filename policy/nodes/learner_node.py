@@ -101,7 +101,7 @@ class Learner:
         from policy.algorithms.td3 import load_actor
         from policy.shipped import policy_path
 
-        path = policy_path(init)
+        path = policy_path(init, flag="--init-actor")
         if not path.is_file():
             raise FileNotFoundError(f"--init-actor {path}: no such actor file")
         self.agent.actor.load_state_dict(load_actor(path, task=TASK).state_dict())

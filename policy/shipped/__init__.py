@@ -15,10 +15,10 @@ SHIPPED = {"valley": "td3_abr_valley"}  # name -> folder
 DEFAULT_SHIPPED = "valley"
 
 
-def shipped_actor(name: str) -> Path:
-    """The actor file of shipped policy ``name``; ValueError naming the flag otherwise."""
+def shipped_actor(name: str, flag: str = "--policy") -> Path:
+    """The actor file of shipped policy ``name``; ValueError naming ``flag`` otherwise."""
     if name not in SHIPPED:
-        raise ValueError(f"--policy shipped:{name}: no such shipped policy (shipped: "
+        raise ValueError(f"{flag} shipped:{name}: no such shipped policy (shipped: "
                          f"{', '.join(f'shipped:{n}' for n in SHIPPED)})")
     return SHIPPED_DIR / SHIPPED[name] / "actor.pt"
 
@@ -26,11 +26,11 @@ def shipped_actor(name: str) -> Path:
 SHIPPED_POLICY = shipped_actor(DEFAULT_SHIPPED)
 
 
-def policy_path(policy: str | Path | None) -> Path:
+def policy_path(policy: str | Path | None, flag: str = "--policy") -> Path:
     """``None`` or ``"shipped"``: the default shipped actor; ``"shipped:NAME"``: that
     shipped actor (ValueError for an unknown name); anything else: the path (an actor
     file or a run's directory)."""
     if policy is None or str(policy) == "shipped":
         return SHIPPED_POLICY
     kind, sep, name = str(policy).partition(":")
-    return shipped_actor(name) if sep and kind == "shipped" else Path(policy)
+    return shipped_actor(name, flag) if sep and kind == "shipped" else Path(policy)

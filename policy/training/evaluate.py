@@ -146,10 +146,13 @@ def evaluate(policy: str | None, scenario: str, episodes: int, seed: int = EVAL_
     source = WorldSource.parse(scenario)
     if worlds is not None and not scenario.startswith("family:"):  # one family, parsed
         raise ValueError(f"--worlds needs --scenario family:NAME, got {scenario!r}")
+    if worlds is not None and worlds < 1:
+        raise ValueError(f"--worlds: expected a positive integer, got {worlds}")
     if worlds is None and not source.fixed:
         raise ValueError(f"--scenario {scenario}: evaluation flies held-out worlds: give "
                          f"--worlds N")
-    names = eval_worlds(source.families[0], worlds, validation=validation) if worlds else []
+    names = ([] if worlds is None
+             else eval_worlds(source.families[0], worlds, validation=validation))
     torch.set_num_threads(1)
     controller = make_controller(policy, task=None)
     env = env_for(controller, names[0] if names else scenario)

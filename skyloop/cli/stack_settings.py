@@ -249,7 +249,7 @@ class PolicyFlag(Settings):
     policy: Annotated[str, tyro.conf.arg(
         metavar="FILE|scripted|none|shipped[:NAME]")] = "shipped"
     """an actor file, the scripted controller, no policy, or an actor skyloop ships
-    (shipped: the default; shipped:NAME one by name, policy/shipped/README.md)"""
+    (shipped: the default; shipped:NAME one by name, policy/shipped/__init__.py)"""
 
     def validate(self) -> None:
         super().validate()

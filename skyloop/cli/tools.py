@@ -48,14 +48,19 @@ class DemoCommand(ScenarioFlag):
     out_dir: Annotated[Path, tyro.conf.arg(metavar="DIR")] = Path("out")
     """where the picture of the paths goes"""
     policy: Annotated[str | None, tyro.conf.arg(
-        metavar="ACTOR|scripted", help_behavior_hint="(default: the shipped policy)")] = None
-    """actor file or 'scripted'"""
+        metavar="ACTOR|scripted|shipped[:NAME]",
+        help_behavior_hint="(default: the shipped policy)")] = None
+    """actor file, 'scripted', or a shipped policy by name"""
     json: Annotated[Path | None, tyro.conf.arg(metavar="PATH")] = None
     """write the summary as JSON here"""
 
     def validate(self) -> None:
         super().validate()
         at_least(self, "episodes", 1)
+        if self.policy is not None:
+            from policy.shipped import policy_path
+
+            policy_path(self.policy)  # an unknown shipped:NAME names --policy
 
 
 @dataclass(kw_only=True)

@@ -82,7 +82,7 @@ def test_default_is_the_shipped_policy():
     assert str(SHIPPED_POLICY) in out.stdout
 
 
-def test_shipped_policies_by_name():
+def test_shipped_policies_by_name(tmp_path):
     """``--policy shipped`` is the default shipped actor, ``shipped:NAME`` one by name
     (each one's folder holds its actor), anything else a path; an unknown name is a
     one-line error naming the flag and the known names."""
@@ -94,7 +94,7 @@ def test_shipped_policies_by_name():
     with pytest.raises(ValueError, match=r"--policy shipped:nope: no such shipped policy "
                                          r"\(shipped: shipped:valley"):
         policy_path("shipped:nope")
-    for command in ("eval", "up", "policy"):  # up: before any node starts
+    for command in ("eval", "up", "policy", "demo"):  # up: before any node starts
         episodes = [] if command == "policy" else ["--episodes", "1"]
         out = subprocess.run([sys.executable, "-m", "skyloop", command, "--policy",
                               "shipped:nope", *episodes], capture_output=True, text=True,
@@ -102,6 +102,11 @@ def test_shipped_policies_by_name():
         assert out.returncode == 2 and out.stderr.count("\n") == 1, out.stderr[-2000:]
         assert "--policy shipped:nope: no such shipped policy" in out.stderr, command
         assert "started" not in out.stdout, command
+    out = subprocess.run([sys.executable, "-m", "skyloop", "learner", "--init-actor",
+                          "shipped:nope", "--out", str(tmp_path / "learner")],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and out.stderr.count("\n") == 1, out.stderr[-2000:]
+    assert "--init-actor: shipped:nope: no such shipped policy" in out.stderr
     out = subprocess.run([sys.executable, "-m", "skyloop", "eval", "--policy", "shipped:valley",
                           "--episodes", "1"], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]

@@ -116,6 +116,10 @@ def test_eval_flies_held_out_worlds_of_a_family(tmp_path):
                                "--episodes", "1", *bad], cwd=ROOT, capture_output=True,
                               text=True, timeout=120)
         assert proc.returncode == 2 and says in proc.stderr, proc.stderr
+    from policy.training.evaluate import evaluate  # as the experiment scripts call it
+
+    with pytest.raises(ValueError, match="--worlds: expected a positive integer, got 0"):
+        evaluate("scripted", "family:city", 1, worlds=0)
 
 
 def test_the_stack_flies_the_drawn_world_and_logs_its_name(tmp_path):

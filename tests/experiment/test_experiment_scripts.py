@@ -1,0 +1,86 @@
+"""The scripts beside the grids (experiments/general/ship.py, pick_by_validation.py,
+experiments/paper_bipedal/goal_thresholds.py): bad input is one line naming what is
+wrong, before anything is evaluated or written."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+GENERAL = ROOT / "experiments" / "general"
+
+
+def run(script: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(script), *args], cwd=script.parent,
+                          capture_output=True, text=True, timeout=120)
+
+
+def last_line(proc: subprocess.CompletedProcess) -> str:
+    return proc.stderr.strip().splitlines()[-1]
+
+
+def test_ship_refuses_a_missing_grid_a_shipped_folder_and_a_zero_count(tmp_path):
+    proc = run(GENERAL / "ship.py", str(tmp_path / "nope"))
+    assert proc.returncode == 2 and "nope: no such directory" in last_line(proc)
+    shipped = ROOT / "policy" / "shipped" / "td3_abr_valley"
+    before = (shipped / "actor.pt").read_bytes()
+    proc = run(GENERAL / "ship.py", str(tmp_path), "--out", str(shipped))
+    assert proc.returncode == 2 and "already a shipped policy" in last_line(proc)
+    assert (shipped / "actor.pt").read_bytes() == before
+    for flag in ("--worlds", "--episodes", "--heldout-worlds", "--heldout-episodes"):
+        proc = run(GENERAL / "ship.py", str(tmp_path), flag, "0")
+        assert proc.returncode == 2, flag
+        assert f"argument {flag}: expected a positive integer, got 0" in last_line(proc)
+    proc = run(GENERAL / "ship.py", str(tmp_path))  # a directory without finished trials
+    assert proc.returncode == 1 and "no finished trial" in last_line(proc)
+
+
+def test_pick_by_validation_refuses_what_is_not_a_run(tmp_path):
+    proc = run(GENERAL / "pick_by_validation.py", str(tmp_path), "--worlds", "3")
+    assert proc.returncode == 1 and "not a training run (no episodes.csv)" in last_line(proc)
+
+
+def test_goal_thresholds_names_a_csv_without_its_columns_and_skips_an_empty_trial(tmp_path):
+    script = ROOT / "experiments" / "paper_bipedal" / "goal_thresholds.py"
+    empty = tmp_path / "Bipedal-td3+ngr-s0"
+    empty.mkdir()
+    (empty / "episodes.csv").write_text("episode,return,steps,base_return\n")
+    full = tmp_path / "Bipedal-td3+ngr-s1"
+    full.mkdir()
+    (full / "episodes.csv").write_text(
+        "episode,return,steps,base_return\n1,-100,90,-100\n2,-50,2000,-50\n")
+    proc = run(script, str(tmp_path), "--thresholds", "-60")
+    assert proc.returncode == 0, proc.stderr
+    assert "Bipedal-td3+ngr-s0: no episode yet, left out" in proc.stdout
+    assert "| 1 | 2 | -50.0 | 50.0% (first ep 2, 1 timeouts) |" in proc.stdout
+    (full / "episodes.csv").write_text("episode,return\n1,-100\n")
+    proc = run(script, str(tmp_path))
+    assert proc.returncode == 1
+    assert last_line(proc) == f"{full / 'episodes.csv'}: no column base_return, steps"
+
+
+def test_the_pick_is_the_actor_file_of_the_run_as_it_is_now(tmp_path, monkeypatch):
+    """Rows of selection.jsonl may name an actor where the run once was (a worktree since
+    removed); the pick names the run's own file, and refuses a snapshot that is gone."""
+    monkeypatch.syspath_prepend(str(GENERAL))
+    from pick_by_validation import GOALS, pick
+
+    run = tmp_path / "mix-td3+abr-s0"
+    (run / "snapshots").mkdir(parents=True)
+    (run / "episodes.csv").write_text("episode\n" + "".join(f"{i}\n" for i in range(1, 201)))
+    (run / "result.json").write_text("{}")
+    for name in ("snapshots/actor-ep100.pt", "actor.pt"):
+        (run / name).write_bytes(b"")
+    rows = [{"episode": e, "family": f, "actor": f"/gone/actor-ep{e}.pt",
+             "success": rate if f == "city" else 0.95}
+            for e, rate in ((100, 0.90), (200, 0.80)) for f in GOALS]
+    choice = pick(run, rows, episodes=60, worlds=20)
+    assert choice["episode"] == 100 and choice["margin"] == pytest.approx(0.05)
+    assert choice["actor"] == str(run / "snapshots" / "actor-ep100.pt")
+    (run / "snapshots" / "actor-ep100.pt").unlink()
+    with pytest.raises(SystemExit, match="the actor of episode 100 is gone"):
+        pick(run, rows, episodes=60, worlds=20)
