@@ -76,7 +76,10 @@ def _commit() -> str:
 
 
 class _Progress:
-    """A Tune callback printing one line at most every ``every`` s: trials, episodes, ETA."""
+    """A Tune callback printing one line at most every ``every`` s: trials, episodes, the
+    rates of episodes and env steps since this command started, and the ETA at that
+    episode rate (episodes of a grid can differ in length: BipedalWalker's run from ~40 to
+    2,000 steps, so the env-step rate is the steadier one)."""
 
     def __init__(self, grid: Grid, done_episodes: dict[str, int], every: float = 60.0) -> None:
         from ray.tune import Callback
@@ -89,6 +92,9 @@ class _Progress:
                 # a trial restarted from an earlier checkpoint goes back: count gains only
                 progress.gained += max(0, episode - progress.episodes.get(name, 0))
                 progress.episodes[name] = episode
+                steps = int(result["total_steps"])  # a trial's first report sets its base
+                progress.gained_steps += max(0, steps - progress.steps.get(name, steps))
+                progress.steps[name] = steps
                 progress.maybe_print()
 
             def on_trial_complete(self, iteration, trials, trial, **info):
@@ -103,6 +109,8 @@ class _Progress:
         self.trials = len(grid.trials)
         self.episodes = dict(done_episodes)
         self.gained = 0  # episodes trained since this command started
+        self.steps: dict[str, int] = {}  # env steps of each trial at its last report
+        self.gained_steps = 0
         self.finished = sum(1 for t in grid.trials
                             if done_episodes.get(t.name, 0) >= t.config.episodes)
         self.t0 = self.last = time.monotonic()
@@ -115,11 +123,13 @@ class _Progress:
         self.last = now
         done = sum(self.episodes.values())
         rate = self.gained / max(now - self.t0, 1e-9) * 60.0
+        step_rate = self.gained_steps / max(now - self.t0, 1e-9)
         eta = (self.total - done) / rate * 60.0 if rate > 0 else float("inf")
         eta_s = "?" if eta == float("inf") else f"{eta / 3600:.1f} h"
         print(f"[experiment] {self.finished}/{self.trials} trials finished, episodes "
               f"{done:,}/{self.total:,} ({done / self.total:.0%}), {rate:.1f} episodes/min, "
-              f"ETA {eta_s}" + (f"  ({note})" if note else ""), flush=True)
+              f"{step_rate:,.0f} env steps/s, ETA {eta_s}" + (f"  ({note})" if note else ""),
+              flush=True)
 
 
 def _episodes_done(out: Path, grid: Grid, status: dict[str, str]) -> dict[str, int]:

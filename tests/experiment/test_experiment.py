@@ -4,6 +4,7 @@ Tune (real Ray, real trainer); a grid killed mid-run continues to the same CSVs.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -138,12 +139,18 @@ def tiny_grid(tmp_path_factory) -> tuple[Path, Path]:
     proc = _experiment(grid, tmp / "out")
     log = proc.communicate(timeout=600)[0]
     assert proc.returncode == 0, log
+    (tmp / "run.log").write_text(log)
     return grid, tmp / "out"
 
 
 def test_a_tiny_grid_runs_on_embedded_ray_and_a_rerun_skips_it(tiny_grid):
     grid, out = tiny_grid
     csvs = _csvs(out)
+    # progress: a line as each trial finishes, with the rates since the command began
+    lines = [x for x in (out.parent / "run.log").read_text().splitlines() if "(finished " in x]
+    assert len(lines) == 4 and lines[-1].startswith("[experiment] 4/4 trials finished, "
+                                                    "episodes 12/12 (100%)"), lines
+    assert all(re.search(r"[1-9][\d,]* env steps/s, ETA", x) for x in lines), lines
     assert sorted(csvs) == sorted(t.name for t in load_grid(grid).trials)
     for name, data in csvs.items():
         assert len(data.splitlines()) == 1 + 3, name
