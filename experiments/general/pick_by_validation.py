@@ -9,12 +9,15 @@ from training and from the held-out worlds the final table uses).
 
 The pick: the actor with the largest worst margin over the issue's goals,
 ``min_f(success_f - goal_f)`` (valley, forest, dynamic 0.90; city 0.85); ties go to the
-earlier actor. Results are appended to ``RUN/selection.jsonl`` as they come (a rerun
+earlier actor. With ``--screen N`` (default 20) every actor first flies N episodes per
+family and only the ``--keep`` best (default 4) fly the full ``--episodes``: the one
+round of successive halving cuts a 31-actor run's validation from 7,440 episodes to
+3,440. Results are appended to ``RUN/selection.jsonl`` as they come (a rerun
 skips what is there: resumable), the pick goes to ``RUN/selection.json`` and a figure of
 success per family over training to ``--plot``.
 
     python experiments/general/pick_by_validation.py RUN_DIR \
-        [--episodes 60 --worlds 20] [--plot FIG]
+        [--episodes 60 --worlds 20] [--screen 20 --keep 4] [--plot FIG]
 """
 
 from __future__ import annotations
@@ -55,9 +58,11 @@ def margin(rates: dict[str, float]) -> float:
     return min(rates[f] - GOALS[f] for f in GOALS)
 
 
-def validate(run: Path, episodes: int = 60, worlds: int = 20) -> list[dict]:
-    """Every kept actor of ``run`` on the validation worlds of every family; rows are
-    appended to ``RUN/selection.jsonl`` as they come and a rerun skips what is there."""
+def validate(run: Path, episodes: int = 60, worlds: int = 20,
+             only: set[int] | None = None) -> list[dict]:
+    """Every kept actor of ``run`` (or those of the training episodes ``only``) on the
+    validation worlds of every family; rows are appended to ``RUN/selection.jsonl`` as
+    they come and a rerun skips what is there."""
     from policy.training.evaluate import evaluate
 
     if not (run / "episodes.csv").is_file():
@@ -67,6 +72,8 @@ def validate(run: Path, episodes: int = 60, worlds: int = 20) -> list[dict]:
     done = [d for d in done if (d["episodes"], d["worlds"]) == (episodes, worlds)]
     seen = {(d["episode"], d["family"]) for d in done}
     for episode, path in actors(run):
+        if only is not None and episode not in only:
+            continue
         for family in GOALS:
             if (episode, family) in seen:
                 continue
@@ -82,6 +89,32 @@ def validate(run: Path, episodes: int = 60, worlds: int = 20) -> list[dict]:
             print(f"{run.name} ep {episode:5d} {family:8s} success {row['success']:.1%} "
                   f"timeout {row['timeout']:.1%}", flush=True)
     return done
+
+
+def screened(run: Path, episodes: int, worlds: int, screen: int = 0,
+             keep: int = 4) -> tuple[list[dict], list[dict]]:
+    """One round of successive halving: every kept actor on ``screen`` episodes per
+    family, then the ``keep`` best of them (worst margin; earliest on ties) on
+    ``episodes``. Returns (the screen's rows, the full rows); with ``screen`` 0 (or not
+    below ``episodes``) every actor gets ``episodes`` and both are the same rows."""
+    if not 0 < screen < episodes:
+        rows = validate(run, episodes, worlds)
+        return rows, rows
+    first = success_table(validate(run, screen, worlds))
+    best = sorted(first, key=lambda e: (-margin(first[e]), e))[:keep]
+    return validate(run, screen, worlds), validate(run, episodes, worlds, only=set(best))
+
+
+def choose(run: Path, episodes: int = 60, worlds: int = 20, screen: int = 0,
+           keep: int = 4, figure: Path | None = None) -> dict:
+    """Validate (``screened``), pick (``pick``) and draw (``plot``, over the screen's
+    rows: every actor) one run; the pick."""
+    seen, rows = screened(run, episodes, worlds, screen, keep)
+    choice = pick(run, rows, episodes, worlds)
+    if figure is not None:
+        plot(run, seen, choice["episode"], figure,
+             screen if 0 < screen < episodes else episodes, worlds)
+    return choice
 
 
 def success_table(rows: list[dict]) -> dict[int, dict[str, float]]:
@@ -138,18 +171,26 @@ def plot(run: Path, rows: list[dict], best: int, out: Path, episodes: int,
     print(f"wrote {out}")
 
 
+def add_screen_flags(p: argparse.ArgumentParser) -> None:
+    """--screen and --keep (``screened``), for this script and ship.py."""
+    p.add_argument("--screen", type=lambda t: positive_int(t) if t != "0" else 0,
+                   default=20, help=(
+        "first fly every actor this many episodes per family, and only the --keep best "
+        "the full --episodes (0: every actor the full --episodes)"))
+    p.add_argument("--keep", type=positive_int, default=4,
+                   help="actors the screen passes on")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("run", type=Path)
     p.add_argument("--episodes", type=positive_int, default=60, help="per family and actor")
     p.add_argument("--worlds", type=positive_int, default=20,
                    help="validation worlds per family")
+    add_screen_flags(p)
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args()
-    rows = validate(args.run, args.episodes, args.worlds)
-    choice = pick(args.run, rows, args.episodes, args.worlds)
-    if args.plot:
-        plot(args.run, rows, choice["episode"], args.plot, args.episodes, args.worlds)
+    choose(args.run, args.episodes, args.worlds, args.screen, args.keep, args.plot)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
 """From a finished mixture grid to a shipped policy (issue 14), by validation worlds only.
 
-1. Every finished trial of the grid: each kept actor on the validation worlds of every
-   family (``pick_by_validation.validate``; resumable, ``TRIAL/selection.jsonl``), and
-   the trial's pick (largest worst margin over the goals).
+1. Every finished trial of the grid (``--jobs`` at once): each kept actor on the
+   validation worlds of every family, screened (``pick_by_validation.screened``: every
+   actor ``--screen`` episodes, the ``--keep`` best the full ``--episodes``; resumable,
+   ``TRIAL/selection.jsonl``), and the trial's pick (largest worst margin over the goals).
 2. Across trials: the pick with the largest worst margin (earliest trial on ties).
 3. That one actor, once, on the **held-out** worlds (``--heldout-episodes`` per family
    over ``--heldout-worlds`` worlds, episode seeds from 1,000,000,000), beside the
@@ -21,13 +22,20 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
-from pick_by_validation import GOALS, margin, pick, plot, positive_int, validate
+from pick_by_validation import GOALS, add_screen_flags, choose, margin, positive_int
 
 from policy.shipped import SHIPPED, SHIPPED_DIR
 
 HERE = Path(__file__).resolve().parent
+
+
+def validate_trial(trial: Path, episodes: int, worlds: int, screen: int, keep: int) -> dict:
+    """One trial validated and its pick (``choose``), its figure ``TRIAL/validation.png``."""
+    return choose(trial, episodes, worlds, screen, keep, trial / "validation.png")
 
 
 def heldout(actor: str, out: Path, episodes: int, worlds: int) -> dict[str, dict]:
@@ -73,6 +81,9 @@ def main() -> None:
     p.add_argument("--episodes", type=positive_int, default=60, help="validation, per family")
     p.add_argument("--worlds", type=positive_int, default=20,
                    help="validation worlds per family")
+    add_screen_flags(p)
+    p.add_argument("--jobs", type=positive_int, default=1,
+                   help="trials validated at once (a process each, one core each)")
     p.add_argument("--heldout-episodes", type=positive_int, default=200)
     p.add_argument("--heldout-worlds", type=positive_int, default=50)
     p.add_argument("--out", type=Path, default=None, help="policy/shipped/NAME to write")
@@ -87,12 +98,10 @@ def main() -> None:
     trials = sorted(d for d in args.grid.iterdir() if (d / "result.json").is_file())
     if not trials:
         raise SystemExit(f"{args.grid}: no finished trial (TRIAL/result.json)")
-    picks = []
-    for trial in trials:
-        rows = validate(trial, args.episodes, args.worlds)
-        picks.append(pick(trial, rows, args.episodes, args.worlds))
-        plot(trial, rows, picks[-1]["episode"], trial / "validation.png", args.episodes,
-             args.worlds)
+    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+        picks = list(pool.map(partial(validate_trial, episodes=args.episodes,
+                                      worlds=args.worlds, screen=args.screen,
+                                      keep=args.keep), trials))
     best = max(picks, key=lambda c: c["margin"])  # the first trial on ties
     (args.grid / "selection.json").write_text(json.dumps(
         {"pick": best, "trials": picks}, indent=2) + "\n")
@@ -112,17 +121,21 @@ def main() -> None:
         f"| {Path(c['run']).name} | {c['episode']} | " + " | ".join(
             f"{c['validation_success'][f]:.0%}" for f in GOALS) + f" | {c['margin']:+.1%} |"
         for c in picks)
+    screening = (f", every actor first {args.screen} episodes per family and the "
+                 f"{args.keep} best of each trial the full {args.episodes}"
+                 if 0 < args.screen < args.episodes else "")
     (args.out / "README.md").write_text(f"""# Shipped policy: {args.out.name}
 
 `actor.pt` is the actor kept at training episode {best['episode']} of `{run.name}` in the
 mixture grid `{args.grid}` (`config.json`: its training settings; `episodes.csv`,
 `curve.png`: its training run), picked by validation worlds only:
 
-    python experiments/general/ship.py {args.grid} --out {args.out}
+    python experiments/general/ship.py {args.grid} --episodes {args.episodes} \
+        --worlds {args.worlds} --screen {args.screen} --keep {args.keep} --out {args.out}
 
 ## The pick: validation worlds ({args.worlds} per family, {args.episodes} episodes each)
 
-Each trial's kept actors were flown on validation worlds (seeds 2,147,483,648 + i); a
+Each trial's kept actors were flown on validation worlds (seeds 2,147,483,648 + i){screening}; a
 trial's pick is the actor with the largest worst margin over the goals
 (min over families of success - goal; `validation.png`), and the grid's pick the best of
 those.

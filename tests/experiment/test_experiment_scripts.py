@@ -84,3 +84,41 @@ def test_the_pick_is_the_actor_file_of_the_run_as_it_is_now(tmp_path, monkeypatc
     (run / "snapshots" / "actor-ep100.pt").unlink()
     with pytest.raises(SystemExit, match="the actor of episode 100 is gone"):
         pick(run, rows, episodes=60, worlds=20)
+
+
+def test_ship_validates_trials_in_parallel_and_screens_before_the_full_count(tmp_path):
+    """Two finished "trials" holding the shipped actor twice each, validated two at a time
+    (real flights on validation worlds): every actor on the screen's episodes, only the
+    best one on the full count, and the grid's pick among those."""
+    import json
+    import shutil
+
+    from policy.shipped import SHIPPED_POLICY
+
+    grid = tmp_path / "grid"
+    for name in ("mix-td3+abr-s0", "mix-td3+tr-s0"):
+        trial = grid / name
+        (trial / "snapshots").mkdir(parents=True)
+        (trial / "episodes.csv").write_text("episode\n1\n2\n")
+        (trial / "result.json").write_text("{}")
+        shutil.copyfile(SHIPPED_POLICY, trial / "snapshots" / "actor-ep1.pt")
+        shutil.copyfile(SHIPPED_POLICY, trial / "actor.pt")
+    flags = ["--episodes", "2", "--worlds", "1", "--screen", "1", "--keep", "1"]
+    proc = run(GENERAL / "ship.py", str(grid), *flags, "--jobs", "2")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    selection = json.loads((grid / "selection.json").read_text())
+    assert len(selection["trials"]) == 2
+    logs = {}
+    for trial in selection["trials"]:
+        log = Path(trial["run"]) / "selection.jsonl"
+        rows = [json.loads(x) for x in log.open()]
+        logs[log] = len(rows)
+        screen = [r for r in rows if r["episodes"] == 1]
+        full = [r for r in rows if r["episodes"] == 2]
+        assert sorted({r["episode"] for r in screen}) == [1, 2] and len(screen) == 8
+        assert {r["episode"] for r in full} == {trial["episode"]} and len(full) == 4
+        assert (Path(trial["run"]) / "validation.png").stat().st_size > 1000
+    assert selection["pick"] == selection["trials"][0]  # the same actor: earliest on ties
+    again = run(GENERAL / "ship.py", str(grid), *flags)  # resumable: nothing flown again
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert {log: sum(1 for _ in log.open()) for log in logs} == logs
