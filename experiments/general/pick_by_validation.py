@@ -100,9 +100,10 @@ def screened(run: Path, episodes: int, worlds: int, screen: int = 0,
     if not 0 < screen < episodes:
         rows = validate(run, episodes, worlds)
         return rows, rows
-    first = success_table(validate(run, screen, worlds))
+    seen = validate(run, screen, worlds)
+    first = success_table(seen)
     best = sorted(first, key=lambda e: (-margin(first[e]), e))[:keep]
-    return validate(run, screen, worlds), validate(run, episodes, worlds, only=set(best))
+    return seen, validate(run, episodes, worlds, only=set(best))
 
 
 def choose(run: Path, episodes: int = 60, worlds: int = 20, screen: int = 0,
