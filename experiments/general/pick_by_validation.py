@@ -161,9 +161,9 @@ def plot(run: Path, rows: list[dict], best: int, out: Path, episodes: int,
         xs = sorted(table)
         ax.plot(xs, [table[e][family] for e in xs], marker="o", ms=3, label=family)
     ax.axvline(best, color="k", lw=0.8, ls="--", label=f"pick (episode {best})")
-    ax.set(title=f"{run.name}: validation worlds ({worlds} per family, {episodes} "
-                 f"episodes)", xlabel="training episode of the actor", ylabel="success",
-           ylim=(0, 1))
+    ax.set(title=f"{run.name}\nvalidation worlds ({worlds} per family, {episodes} "
+                 f"episodes per family and actor)", xlabel="training episode of the actor",
+           ylabel="success", ylim=(0, 1))
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()

@@ -122,3 +122,34 @@ def test_ship_validates_trials_in_parallel_and_screens_before_the_full_count(tmp
     again = run(GENERAL / "ship.py", str(grid), *flags)  # resumable: nothing flown again
     assert again.returncode == 0, again.stderr[-3000:]
     assert {log: sum(1 for _ in log.open()) for log in logs} == logs
+
+
+def test_average_actors_is_the_mean_of_the_kept_weights_and_refuses_a_mismatch(tmp_path):
+    """experiments/general/average_actors.py: the shipped actor and a copy with weights
+    doubled average to 1.5x the shipped weights, and load as an actor; a range with one
+    actor, or actors of another shape, is a one-line error."""
+    import torch
+
+    from policy.algorithms.td3 import load_actor
+    from policy.shipped import SHIPPED_POLICY
+
+    run_dir = tmp_path / "mix-td3+tr-s0"
+    (run_dir / "snapshots").mkdir(parents=True)
+    (run_dir / "episodes.csv").write_text("episode\n1\n")
+    state = torch.load(SHIPPED_POLICY, map_location="cpu", weights_only=True)
+    torch.save(state, run_dir / "snapshots" / "actor-ep100.pt")
+    doubled = {**state, "actor": {k: 2 * v for k, v in state["actor"].items()}}
+    torch.save(doubled, run_dir / "snapshots" / "actor-ep200.pt")
+    out = tmp_path / "mean.pt"
+    script = GENERAL / "average_actors.py"
+    proc = run(script, str(run_dir), "--first", "100", "--last", "200", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    mean = load_actor(out)
+    for name, value in mean.state_dict().items():
+        assert torch.allclose(value, 1.5 * state["actor"][name].float()), name
+    proc = run(script, str(run_dir), "--first", "150", "--last", "200", "--out", str(out))
+    assert proc.returncode == 2 and "1 kept actor(s)" in last_line(proc)
+    other = {**state, "config": {**state["config"], "hidden": [64, 64]}}
+    torch.save(other, run_dir / "snapshots" / "actor-ep200.pt")
+    proc = run(script, str(run_dir), "--first", "100", "--last", "200", "--out", str(out))
+    assert proc.returncode == 2 and "actor-ep100.pt: its config differs" in last_line(proc)
