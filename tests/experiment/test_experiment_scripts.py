@@ -153,3 +153,30 @@ def test_average_actors_is_the_mean_of_the_kept_weights_and_refuses_a_mismatch(t
     torch.save(other, run_dir / "snapshots" / "actor-ep200.pt")
     proc = run(script, str(run_dir), "--first", "100", "--last", "200", "--out", str(out))
     assert proc.returncode == 2 and "actor-ep100.pt: its config differs" in last_line(proc)
+
+
+def test_ship_table_holds_a_family_worse_only_when_the_test_says_so(monkeypatch):
+    """The held-out table's rule: each family at its goal and not below the valley policy
+    at one-sided p < 0.05 (Fisher's exact test on 200 episodes each)."""
+    import json
+
+    monkeypatch.syspath_prepend(str(GENERAL))
+    from ship import GOALS, table, worse_p
+
+    base = {f: json.loads((GENERAL / f"baseline-valley-policy-{f}.json").read_text())
+            for f in GOALS}
+
+    def result(rate: float) -> dict:
+        return {"success_rate": rate, "collision_rate": 0.0, "timeout_rate": 1 - rate,
+                "success_ci95": [rate - 0.04, rate + 0.03], "episodes": 200}
+
+    assert base["valley"]["success_rate"] == 0.93 and base["valley"]["episodes"] == 200
+    assert worse_p(result(0.915), base["valley"]) > 0.05  # 183 of 200 against 186
+    assert worse_p(result(0.85), base["valley"]) < 0.05  # 170 against 186
+    near = {f: result(0.915) for f in GOALS}
+    text, met = table(near)
+    assert met and "| valley | 91.5% (87.5%-94.5%) |" in text and "-1.5% (p " in text
+    text, met = table({**near, "dynamic": result(0.80)})
+    assert not met and text.count("**not met**") == 1
+    text, met = table({**near, "city": result(0.84)})  # below the city goal of 85%
+    assert not met and "| city | 84.0%" in text
