@@ -12,12 +12,17 @@ The pick: the actor with the largest worst margin over the issue's goals,
 earlier actor. With ``--screen N`` (default 20) every actor first flies N episodes per
 family and only the ``--keep`` best (default 4) fly the full ``--episodes``: the one
 round of successive halving cuts a 31-actor run's validation from 7,440 episodes to
-3,440. Results are appended to ``RUN/selection.jsonl`` as they come (a rerun
-skips what is there: resumable), the pick goes to ``RUN/selection.json`` and a figure of
-success per family over training to ``--plot``.
+3,440. Then the ``--final-keep`` best of those (default 2) fly ``--final`` episodes
+(default 200, as many as the held-out table) and the pick is made on those: 60 episodes
+could not tell 92% from 81% (experiments/general/README.md: the first grid's pick), and
+the best of many noisy actors is the lucky one, so the last word goes to a count whose
+95% interval is about +-4 points, not +-7. Results are appended to ``RUN/selection.jsonl``
+as they come (a rerun skips what is there: resumable), the pick goes to
+``RUN/selection.json`` and a figure of success per family over training to ``--plot``.
 
     python experiments/general/pick_by_validation.py RUN_DIR \
-        [--episodes 60 --worlds 20] [--screen 20 --keep 4] [--plot FIG]
+        [--episodes 60 --worlds 20] [--screen 20 --keep 4] [--final 200 --final-keep 2] \
+        [--plot FIG]
 """
 
 from __future__ import annotations
@@ -91,27 +96,37 @@ def validate(run: Path, episodes: int = 60, worlds: int = 20,
     return done
 
 
-def screened(run: Path, episodes: int, worlds: int, screen: int = 0,
-             keep: int = 4) -> tuple[list[dict], list[dict]]:
-    """One round of successive halving: every kept actor on ``screen`` episodes per
-    family, then the ``keep`` best of them (worst margin; earliest on ties) on
-    ``episodes``. Returns (the screen's rows, the full rows); with ``screen`` 0 (or not
-    below ``episodes``) every actor gets ``episodes`` and both are the same rows."""
-    if not 0 < screen < episodes:
-        rows = validate(run, episodes, worlds)
-        return rows, rows
-    seen = validate(run, screen, worlds)
-    first = success_table(seen)
-    best = sorted(first, key=lambda e: (-margin(first[e]), e))[:keep]
-    return seen, validate(run, episodes, worlds, only=set(best))
+def best_of(rows: list[dict], keep: int) -> set[int]:
+    """The training episodes of the ``keep`` actors of ``rows`` with the largest worst
+    margin (earliest on ties)."""
+    table = success_table(rows)
+    return set(sorted(table, key=lambda e: (-margin(table[e]), e))[:keep])
+
+
+def screened(run: Path, episodes: int, worlds: int, screen: int = 0, keep: int = 4,
+             final: int = 0, final_keep: int = 2) -> tuple[list[dict], list[dict]]:
+    """Successive halving: every kept actor on ``screen`` episodes per family, the
+    ``keep`` best of them (worst margin; earliest on ties) on ``episodes``, and with
+    ``final`` above ``episodes`` the ``final_keep`` best of those on ``final``. Returns
+    (the first round's rows, the last round's rows); with ``screen`` 0 (or not below
+    ``episodes``) every actor gets ``episodes`` in the first round."""
+    if 0 < screen < episodes:
+        seen = validate(run, screen, worlds)
+        rows = validate(run, episodes, worlds, only=best_of(seen, keep))
+    else:
+        seen = rows = validate(run, episodes, worlds)
+    if final > episodes:
+        rows = validate(run, final, worlds, only=best_of(rows, final_keep))
+    return seen, rows
 
 
 def choose(run: Path, episodes: int = 60, worlds: int = 20, screen: int = 0,
-           keep: int = 4, figure: Path | None = None) -> dict:
-    """Validate (``screened``), pick (``pick``) and draw (``plot``, over the screen's
-    rows: every actor) one run; the pick."""
-    seen, rows = screened(run, episodes, worlds, screen, keep)
-    choice = pick(run, rows, episodes, worlds)
+           keep: int = 4, figure: Path | None = None, final: int = 0,
+           final_keep: int = 2) -> dict:
+    """Validate (``screened``), pick (``pick``, on the last round's rows) and draw
+    (``plot``, over the first round's rows: every actor) one run; the pick."""
+    seen, rows = screened(run, episodes, worlds, screen, keep, final, final_keep)
+    choice = pick(run, rows, final if final > episodes else episodes, worlds)
     if figure is not None:
         plot(run, seen, choice["episode"], figure,
              screen if 0 < screen < episodes else episodes, worlds)
@@ -172,14 +187,21 @@ def plot(run: Path, rows: list[dict], best: int, out: Path, episodes: int,
     print(f"wrote {out}")
 
 
-def add_screen_flags(p: argparse.ArgumentParser) -> None:
-    """--screen and --keep (``screened``), for this script and ship.py."""
+def add_round_flags(p: argparse.ArgumentParser) -> None:
+    """--screen, --keep, --final and --final-keep (``screened``), for this script and
+    ship.py."""
     p.add_argument("--screen", type=lambda t: positive_int(t) if t != "0" else 0,
                    default=20, help=(
         "first fly every actor this many episodes per family, and only the --keep best "
         "the full --episodes (0: every actor the full --episodes)"))
     p.add_argument("--keep", type=positive_int, default=4,
                    help="actors the screen passes on")
+    p.add_argument("--final", type=lambda t: positive_int(t) if t != "0" else 0,
+                   default=200, help=(
+        "then fly the --final-keep best of those this many episodes per family and pick "
+        "on them (0, or not above --episodes: pick on --episodes)"))
+    p.add_argument("--final-keep", type=positive_int, default=2,
+                   help="actors the full round passes on to the final one")
 
 
 def main() -> None:
@@ -188,10 +210,11 @@ def main() -> None:
     p.add_argument("--episodes", type=positive_int, default=60, help="per family and actor")
     p.add_argument("--worlds", type=positive_int, default=20,
                    help="validation worlds per family")
-    add_screen_flags(p)
+    add_round_flags(p)
     p.add_argument("--plot", type=Path, default=None)
     args = p.parse_args()
-    choose(args.run, args.episodes, args.worlds, args.screen, args.keep, args.plot)
+    choose(args.run, args.episodes, args.worlds, args.screen, args.keep, args.plot,
+           args.final, args.final_keep)
 
 
 if __name__ == "__main__":

@@ -2,8 +2,9 @@
 
 1. Every finished trial of the grid (``--jobs`` at once): each kept actor on the
    validation worlds of every family, screened (``pick_by_validation.screened``: every
-   actor ``--screen`` episodes, the ``--keep`` best the full ``--episodes``; resumable,
-   ``TRIAL/selection.jsonl``), and the trial's pick (largest worst margin over the goals).
+   actor ``--screen`` episodes, the ``--keep`` best the full ``--episodes``, the
+   ``--final-keep`` best of those ``--final``; resumable, ``TRIAL/selection.jsonl``), and
+   the trial's pick (largest worst margin over the goals, on the last round).
 2. Across trials: the pick with the largest worst margin (earliest trial on ties).
 3. That one actor, once, on the **held-out** worlds (``--heldout-episodes`` per family
    over ``--heldout-worlds`` worlds, episode seeds from 1,000,000,000), beside the
@@ -28,16 +29,18 @@ from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from pathlib import Path
 
-from pick_by_validation import GOALS, add_screen_flags, choose, margin, positive_int
+from pick_by_validation import GOALS, add_round_flags, choose, margin, positive_int
 
 from policy.shipped import SHIPPED, SHIPPED_DIR
 
 HERE = Path(__file__).resolve().parent
 
 
-def validate_trial(trial: Path, episodes: int, worlds: int, screen: int, keep: int) -> dict:
+def validate_trial(trial: Path, episodes: int, worlds: int, screen: int, keep: int,
+                   final: int, final_keep: int) -> dict:
     """One trial validated and its pick (``choose``), its figure ``TRIAL/validation.png``."""
-    return choose(trial, episodes, worlds, screen, keep, trial / "validation.png")
+    return choose(trial, episodes, worlds, screen, keep, trial / "validation.png", final,
+                  final_keep)
 
 
 def heldout(actor: str, out: Path, episodes: int, worlds: int) -> dict[str, dict]:
@@ -101,7 +104,7 @@ def main() -> None:
     p.add_argument("--episodes", type=positive_int, default=60, help="validation, per family")
     p.add_argument("--worlds", type=positive_int, default=20,
                    help="validation worlds per family")
-    add_screen_flags(p)
+    add_round_flags(p)
     p.add_argument("--jobs", type=positive_int, default=1,
                    help="trials validated at once (a process each, one core each)")
     p.add_argument("--heldout-episodes", type=positive_int, default=200)
@@ -121,7 +124,8 @@ def main() -> None:
     with ProcessPoolExecutor(max_workers=args.jobs) as pool:
         picks = list(pool.map(partial(validate_trial, episodes=args.episodes,
                                       worlds=args.worlds, screen=args.screen,
-                                      keep=args.keep), trials))
+                                      keep=args.keep, final=args.final,
+                                      final_keep=args.final_keep), trials))
     best = max(picks, key=lambda c: c["margin"])  # the first trial on ties
     (args.grid / "selection.json").write_text(json.dumps(
         {"pick": best, "trials": picks}, indent=2) + "\n")
@@ -144,16 +148,21 @@ def main() -> None:
     screening = (f", every actor first {args.screen} episodes per family and the "
                  f"{args.keep} best of each trial the full {args.episodes}"
                  if 0 < args.screen < args.episodes else "")
+    final = args.final if args.final > args.episodes else args.episodes
+    if final > args.episodes:
+        screening += (f", then the {args.final_keep} best of those {final} episodes per "
+                      f"family, on which the pick is made")
     (args.out / "README.md").write_text(f"""# Shipped policy: {args.out.name}
 
 `actor.pt` is the actor kept at training episode {best['episode']} of `{run.name}` in the
 mixture grid `{args.grid}` (`config.json`: its training settings; `episodes.csv`,
 `curve.png`: its training run), picked by validation worlds only:
 
-    python experiments/general/ship.py {args.grid} --episodes {args.episodes} \
-        --worlds {args.worlds} --screen {args.screen} --keep {args.keep} --out {args.out}
+    python experiments/general/ship.py {args.grid} --episodes {args.episodes} \\
+        --worlds {args.worlds} --screen {args.screen} --keep {args.keep} \\
+        --final {args.final} --final-keep {args.final_keep} --out {args.out}
 
-## The pick: validation worlds ({args.worlds} per family, {args.episodes} episodes each)
+## The pick: validation worlds ({args.worlds} per family, {final} episodes each)
 
 Each trial's kept actors were flown on validation worlds (seeds 2,147,483,648 + i){screening}; a
 trial's pick is the actor with the largest worst margin over the goals

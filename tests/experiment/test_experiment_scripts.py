@@ -86,10 +86,48 @@ def test_the_pick_is_the_actor_file_of_the_run_as_it_is_now(tmp_path, monkeypatc
         pick(run, rows, episodes=60, worlds=20)
 
 
+def test_the_final_round_has_the_last_word(tmp_path, monkeypatch):
+    """Successive halving (pick_by_validation.screened) with the validation flights replaced
+    by a table of rates: the screen passes the 2 best of 3 actors on, the full round the
+    best of those to the final round, and the pick is made on the final round's rates
+    even where the full round ranked the actors otherwise."""
+    monkeypatch.syspath_prepend(str(GENERAL))
+    import pick_by_validation as pbv
+
+    # success per (round's episodes, actor's training episode)
+    rates = {20: {100: 0.95, 200: 0.95, 300: 0.50},
+             60: {100: 0.97, 200: 0.93, 300: 0.50},
+             200: {100: 0.86, 200: 0.92, 300: 0.50}}
+    flown = []
+
+    def validate(run, episodes, worlds, only=None):
+        chosen = sorted(rates[episodes] if only is None else only)
+        flown.append((episodes, chosen))
+        return [{"episode": e, "family": f, "success": rates[episodes][e]}
+                for e in chosen for f in pbv.GOALS]
+
+    monkeypatch.setattr(pbv, "validate", validate)
+    run = tmp_path / "mix-td3+abr-s0"
+    (run / "snapshots").mkdir(parents=True)
+    (run / "episodes.csv").write_text("episode\n" + "".join(f"{i}\n" for i in range(1, 301)))
+    for e in (100, 200, 300):
+        (run / "snapshots" / f"actor-ep{e}.pt").write_bytes(b"")
+    seen, rows = pbv.screened(run, 60, 20, screen=20, keep=2, final=200, final_keep=2)
+    assert flown == [(20, [100, 200, 300]), (60, [100, 200]), (200, [100, 200])]
+    assert {r["episode"] for r in seen} == {100, 200, 300}
+    choice = pbv.pick(run, rows, 200, 20)
+    assert choice["episode"] == 200 and choice["episodes_per_family"] == 200
+    flown.clear()
+    _, rows = pbv.screened(run, 60, 20, screen=20, keep=2, final=0)  # no final round
+    assert flown == [(20, [100, 200, 300]), (60, [100, 200])]
+    assert pbv.pick(run, rows, 60, 20)["episode"] == 100
+
+
 def test_ship_validates_trials_in_parallel_and_screens_before_the_full_count(tmp_path):
     """Two finished "trials" holding the shipped actor twice each, validated two at a time
     (real flights on validation worlds): every actor on the screen's episodes, only the
-    best one on the full count, and the grid's pick among those."""
+    best one on the full count, that one again on the final count, and the grid's pick
+    among those, made on the final count."""
     import json
     import shutil
 
@@ -103,7 +141,8 @@ def test_ship_validates_trials_in_parallel_and_screens_before_the_full_count(tmp
         (trial / "result.json").write_text("{}")
         shutil.copyfile(SHIPPED_POLICY, trial / "snapshots" / "actor-ep1.pt")
         shutil.copyfile(SHIPPED_POLICY, trial / "actor.pt")
-    flags = ["--episodes", "2", "--worlds", "1", "--screen", "1", "--keep", "1"]
+    flags = ["--episodes", "2", "--worlds", "1", "--screen", "1", "--keep", "1",
+             "--final", "3", "--final-keep", "1"]
     proc = run(GENERAL / "ship.py", str(grid), *flags, "--jobs", "2")
     assert proc.returncode == 0, proc.stderr[-3000:]
     selection = json.loads((grid / "selection.json").read_text())
@@ -116,7 +155,10 @@ def test_ship_validates_trials_in_parallel_and_screens_before_the_full_count(tmp
         screen = [r for r in rows if r["episodes"] == 1]
         full = [r for r in rows if r["episodes"] == 2]
         assert sorted({r["episode"] for r in screen}) == [1, 2] and len(screen) == 8
-        assert {r["episode"] for r in full} == {trial["episode"]} and len(full) == 4
+        final = [r for r in rows if r["episodes"] == 3]
+        assert len({r["episode"] for r in full}) == 1 and len(full) == 4
+        assert {r["episode"] for r in final} == {trial["episode"]} and len(final) == 4
+        assert trial["episodes_per_family"] == 3
         assert (Path(trial["run"]) / "validation.png").stat().st_size > 1000
     assert selection["pick"] == selection["trials"][0]  # the same actor: earliest on ties
     again = run(GENERAL / "ship.py", str(grid), *flags)  # resumable: nothing flown again
