@@ -222,3 +222,26 @@ def test_ship_table_holds_a_family_worse_only_when_the_test_says_so(monkeypatch)
     assert not met and text.count("**not met**") == 1
     text, met = table({**near, "city": result(0.84)})  # below the city goal of 85%
     assert not met and "| city | 84.0%" in text
+
+
+def test_altitude_probe_counts_flights_over_raised_ground_and_names_a_bad_actor(tmp_path,
+                                                                                monkeypatch):
+    """experiments/general/altitude_probe.py: its summary counts an episode as "over" only
+    where the ground under the path rose above the flight level + 1 m; a real flight of the
+    shipped actor gives rows in range; an actor without a label is a one-line error."""
+    monkeypatch.syspath_prepend(str(GENERAL))
+    from altitude_probe import fly, summary
+
+    rows = [{"outcome": "success", "max_altitude": 8.0, "max_ground_under": 5.0},
+            {"outcome": "timeout", "max_altitude": 4.0, "max_ground_under": 4.4},
+            {"outcome": "success", "max_altitude": 5.0, "max_ground_under": 1.0}]
+    s = summary(rows, flight_level=3.5)
+    assert s["flew_over_raised_ground"] == pytest.approx(1 / 3)
+    assert s["success"] == pytest.approx(2 / 3) and s["timeout"] == pytest.approx(1 / 3)
+    assert s["above_6m"] == pytest.approx(1 / 3) and s["max_altitude_median"] == 5.0
+    flown = fly("shipped:valley", "valley", worlds=1, episodes=1)
+    assert len(flown) == 1 and flown[0]["outcome"] in ("success", "collision", "timeout")
+    assert 0.0 < flown[0]["max_altitude"] < 30.0
+    proc = run(GENERAL / "altitude_probe.py", "shipped:valley")
+    assert proc.returncode == 2
+    assert "actor 'shipped:valley': expected LABEL=ACTOR" in last_line(proc)
