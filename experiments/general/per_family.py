@@ -8,7 +8,7 @@ world is the first thing an episode's reset draws from its seed (``sitl.episode`
     python experiments/general/per_family.py RUN_DIR [RUN_DIR ...] --out FIG.png
 
 Prints success / timeout / collision per family in windows of 500 episodes and draws
-success per family over episodes (a 250-episode moving window).
+success per family over episodes (a 250-episode moving window), three runs a row.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from policy.training.train import episode_seed  # noqa: E402
 from sitl.world.families import WorldSource  # noqa: E402
 
 WINDOW = 250
+COLUMNS = 3  # panels a row
 
 
 def families_of(run: Path) -> tuple[list[str], list[str]]:
@@ -49,9 +50,12 @@ def main() -> None:
     p.add_argument("runs", nargs="+", type=Path)
     p.add_argument("--out", type=Path, default=Path("per_family.png"))
     args = p.parse_args()
-    fig, axes = plt.subplots(1, len(args.runs), figsize=(6 * len(args.runs), 4),
-                             squeeze=False)
-    for ax, run in zip(axes[0], args.runs, strict=False):
+    cols = min(COLUMNS, len(args.runs))
+    rows = -(-len(args.runs) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4 * rows), squeeze=False)
+    for ax in axes.flat[len(args.runs):]:
+        ax.axis("off")
+    for ax, run in zip(axes.flat, args.runs, strict=False):
         fams, outcomes = families_of(run)
         print(f"{run.name}:")
         for lo in range(0, len(fams), 500):
