@@ -84,7 +84,8 @@ def test_a_bad_grid_names_the_file_and_the_field(tmp_path, old, new, field):
 
 
 REPO = Path(__file__).resolve().parents[2]
-COMMITTED_GRIDS = sorted(p.relative_to(REPO) for d in ("experiments", "experiments/general_state")
+COMMITTED_GRIDS = sorted(p.relative_to(REPO) for d in ("experiments", "experiments/general_state",
+                                                         "experiments/general_weights")
                          for p in (REPO / d).glob("*.toml"))
 
 
