@@ -2,10 +2,10 @@
 
 Ground stations read and set these through the MAVLink parameter protocol
 (``mavlink_bridge.gcs.params``); the nodes that act on them (``sim``: commander and
-autopilot; ``perception``: the icosahedron radius) apply them when they change. Names
-follow PX4 where PX4 has the parameter (``COM_OF_LOSS_T``, ``MPC_XY_VEL_MAX``, ...) and
-use the ``SKY_`` prefix where it does not. Every name fits MAVLink's 16-character
-``param_id``. Pure: no I/O, no Zenoh.
+autopilot, and the LiDAR's range for the radius; ``perception``: the icosahedron radius)
+apply them when they change. Names follow PX4 where PX4 has the parameter
+(``COM_OF_LOSS_T``, ``MPC_XY_VEL_MAX``, ...) and use the ``SKY_`` prefix where it does
+not. Every name fits MAVLink's 16-character ``param_id``. Pure: no I/O, no Zenoh.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ class ParamDef:
     maximum: float
     kind: str  # "float" (MAV_PARAM_TYPE_REAL32) or "int" (MAV_PARAM_TYPE_INT32)
     unit: str
-    applies_to: str  # "sim" or "perception"
+    applies_to: str  # "sim" or "perception" (the owner; ``sets`` may reach the other too)
     doc: str
     sets: tuple[str, ...] = ()
     task_field: str | None = None
@@ -68,7 +68,7 @@ PARAMS: tuple[ParamDef, ...] = (
              sets=("commander.flight_level",)),
     ParamDef("SKY_ICO_RADIUS", TASK.ico_radius, 0.5, 50.0, "float", "m", "perception",
              "truncated-icosahedron radius p_radius of the observation (eq. 3.1)",
-             sets=("observation.radius",), task_field="ico_radius"),
+             sets=("observation.radius", "lidar.ico_radius"), task_field="ico_radius"),
 )
 
 BY_NAME: dict[str, ParamDef] = {p.name: p for p in PARAMS}

@@ -21,24 +21,30 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from bus.task import StepRecord, TaskSpec, goal_angles
+from bus.task import TASK, StepRecord, TaskSpec, goal_angles
 from sitl.flight.vehicle import Vehicle, VehicleConfig
 from sitl.lidar.scanner import Lidar, LidarConfig
 from sitl.world.families import WorldSource
 from sitl.world.world import UAV_BODY_RADIUS, World, load_scenario
 
 WORLD_CACHE = 4  # worlds kept built (evaluation cycles through a few)
+#: the LiDAR's range beyond the observation's icosahedron radius: the default 4.5 m range
+#: for the default 4 m radius (points beyond the radius are not in the faces, but the range
+#: still matters a little: the LiDAR's noise stream is drawn per return within range), so an
+#: actor trained with radius r flies with range r + this, in training, evaluation and the
+#: stack alike (``EpisodeSim.ico_radius``, set by ``SKY_ICO_RADIUS``)
+LIDAR_MARGIN = 0.5
 
 
 @dataclass
 class EpisodeConfig:
     scenario: str = "valley"  # a world, or worlds drawn per episode (sitl.world.families)
     world_every: int = 1  # family:/mix: scenarios: a new world every N episodes
-    lidar_max_range: float = 4.5  # the observation only needs points inside p_radius = 4 m
+    lidar_max_range: float = TASK.ico_radius + LIDAR_MARGIN  # the faces need p_radius = 4 m
     lidar_noise_sigma: float = 0.03
     body_radius: float = UAV_BODY_RADIUS
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
@@ -84,6 +90,25 @@ class EpisodeSim:
         self._worlds.move_to_end(name)
         self.world_name = name
         self.world, self.lidar = self._worlds[name]
+
+    @property
+    def ico_radius(self) -> float:
+        """The observation radius the LiDAR reaches (its range less ``LIDAR_MARGIN``)."""
+        return self.config.lidar_max_range - LIDAR_MARGIN
+
+    @ico_radius.setter
+    def ico_radius(self, radius: float) -> None:
+        """Make the LiDAR reach an observation of radius ``radius`` (``SKY_ICO_RADIUS``,
+        ``bus.params``): its range becomes ``radius + LIDAR_MARGIN``, for every world
+        built and to come; the scan in flight is unchanged until the next one."""
+        max_range = float(radius) + LIDAR_MARGIN
+        if math.isclose(max_range, self.config.lidar_max_range):
+            return
+        self.config = replace(self.config, lidar_max_range=max_range)
+        for name, (world, lidar) in self._worlds.items():
+            self._worlds[name] = (world, Lidar(world, replace(lidar.config,
+                                                                max_range=max_range)))
+        self.world, self.lidar = self._worlds[self.world_name]
 
     def reset(self, rng: np.random.Generator, goal: np.ndarray | None = None) -> None:
         """Start a new episode with randomness drawn from ``rng`` (see module docstring);

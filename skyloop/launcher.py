@@ -25,9 +25,12 @@ until stopped). ``--goals gcs``: the policy takes off and flies OFFBOARD as usua
 sim runs free flight in real time with goals from the bus only (``sim --goals-from-bus``): a
 ground station's mission or reposition gives them (``mavlink_bridge.gcs.goals``), and between
 goals the policy hovers (``policy --hold``); until stopped by default. ``--param
-NAME=VALUE`` goes to the sim (``bus/params.py``). When the sim finishes, the others get
-SIGTERM (the recorder closes its MCAP), then SIGKILL after the grace period (a node that
-needed it is named: "force-killed NAME"; none should). If any child
+NAME=VALUE`` goes to the sim (``bus/params.py``). The stack makes the state the actor was
+trained on (:func:`as_trained`: its recorded icosahedron radius as ``SKY_ICO_RADIUS``, which
+perception's faces and the sim's LiDAR range follow, its encoding; the policy node stacks its
+frames), unless ``--param SKY_ICO_RADIUS`` or ``--encoding`` says otherwise. When the sim
+finishes, the others get SIGTERM (the recorder closes its MCAP), then SIGKILL after the
+grace period (a node that needed it is named: "force-killed NAME"; none should). If any child
 dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits non-zero,
 naming the node that died and its last log line. With ``--restart on-failure`` a
 perception, bridge, policy or ``--router`` router that exits with a failure is started
@@ -57,6 +60,7 @@ processes it replaced."""
 from __future__ import annotations
 
 import collections
+import copy
 import functools
 import json
 import os
@@ -72,6 +76,7 @@ from typing import Any
 
 from bus.node import Bus
 from bus.session import SessionConfig
+from bus.task import TASK
 from skyloop.cli.stack_settings import UpCommand
 from skyloop.placement import Placement, plan
 from skyloop.signals import Stopped, block_until_started, stop_on_sigterm
@@ -354,13 +359,46 @@ def _security_flags(args: UpCommand) -> list[str]:
     return flags + [a for n in (args.allow_sysid or []) for a in ("--allow-sysid", str(n))]
 
 
+def as_trained(args: UpCommand) -> tuple[UpCommand, str | None]:
+    """A copy of ``args`` that makes the state the policy's actor was trained on: its
+    recorded icosahedron radius as ``--param SKY_ICO_RADIUS`` (perception's radius and the
+    sim's LiDAR range) unless a ``--param`` gives it, and its encoding as perception's
+    unless ``--encoding`` gives one; with a line saying so where that differs from the
+    defaults (else None). ``--policy none``, the scripted controller: unchanged. An actor
+    file that cannot be read is the ValueError ``skyloop up`` prints as one line."""
+    if args.policy in ("none", "scripted"):
+        return args, None
+    from bus.params import default
+    from policy.training.evaluate import ActorController
+
+    actor = ActorController(args.actor, task=None)  # torch: read once, here
+    trained, observation = actor.trained_task, actor.trained_observation
+    out, said = copy.copy(args), []
+    given = {p.partition("=")[0].strip() for p in args.param}
+    if "SKY_ICO_RADIUS" not in given:
+        out.param = (*args.param, f"SKY_ICO_RADIUS={trained.ico_radius:g}")
+        if trained.ico_radius != default("SKY_ICO_RADIUS"):
+            said.append(f"icosahedron radius {trained.ico_radius:g} m (SKY_ICO_RADIUS; "
+                        f"the LiDAR's range follows)")
+    if args.encoding is None:
+        out.encoding = observation.encoding
+        if observation.encoding != "distance":
+            said.append(f"{observation.encoding} encoding")
+    if trained.frames != TASK.frames:
+        said.append(f"{trained.frames} frames a state")
+    line = (f"skyloop up: flying {actor.name} in the state it was trained on: "
+            f"{', '.join(said)}") if said else None
+    return out, line
+
+
 def _node_args(args: UpCommand, ports: dict[str, int]) -> dict[str, list[str]]:
     clock = ["--realtime"] if args.realtime else ["--lockstep"]
     v = ["--vehicle", args.vehicle]
     params = [a for p in args.param for a in ("--param", p)]
     security = _security_flags(args)
     return {
-        "perception": ["perception", *v, "--encoding", args.encoding],
+        "perception": ["perception", *v,
+                       *(["--encoding", args.encoding] if args.encoding else [])],
         "bridge": ["bridge", *v, "--api-port", str(ports["api"]),
                    "--api-local-port", str(ports["api_local"]),
                    "--gcs-port", str(ports["gcs"]), "--gcs-local-port", str(ports["gcs_local"]),
@@ -389,6 +427,9 @@ def run_up(args: UpCommand) -> int:
         print("--policy none / --goals gcs: free flight for a ground station, running "
               "--realtime")
     args = args.resolved()  # episodes and the clock as these settings imply
+    args, line = as_trained(args)  # the state the actor was trained on
+    if line:
+        print(line, flush=True)
     env = dict(os.environ)
     env.setdefault("PYTHONUNBUFFERED", "1")
     env.setdefault("MAVLINK20", "1")

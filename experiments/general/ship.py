@@ -152,7 +152,8 @@ def main() -> None:
     if final > args.episodes:
         screening += (f", then the {args.final_keep} best of those {final} episodes per "
                       f"family, on which the pick is made")
-    (args.out / "README.md").write_text(f"""# Shipped policy: {args.out.name}
+    title = f"{args.out.name}: a mixture policy picked by validation worlds"
+    (args.out / "README.md").write_text(f"""# {title}
 
 `actor.pt` is the actor kept at training episode {best['episode']} of `{run.name}` in the
 mixture grid `{args.grid}` (`config.json`: its training settings; `episodes.csv`,

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +35,7 @@ from policy.training.settings import (  # noqa: F401 - re-exported: EvalConfig l
     EVAL_SEED,  # light settings module, so `skyloop eval --help` needs no torch
     EvalConfig,
 )
-from sitl.episode import EpisodeConfig
+from sitl.episode import LIDAR_MARGIN, EpisodeConfig
 
 
 def _torch_error(path: Path, exc: Exception) -> str:
@@ -108,11 +109,15 @@ def make_controller(policy: str | None, task: TaskSpec | None = TASK):
     return ActorController(policy_path(policy), task=task)
 
 
-#: The LiDAR's range for an actor trained with icosahedron radius r: r + this (the
-#: default 4 m radius and 4.5 m range; what experiments/general_state/radius6.toml trains
-#: with). Points beyond the radius are not in the faces, but the range still matters a
-#: little: the LiDAR's noise stream is drawn per return within range.
-LIDAR_MARGIN = EpisodeConfig.lidar_max_range - TASK.ico_radius
+def stack_controller(policy: str | None):
+    """What the stack's policy node flies (``skyloop policy``): ``make_controller``'s
+    controller for the skyloop task at the frames the actor was trained with (the node
+    stacks that many; the state's other fields, faces and actions, must be the task's)."""
+    controller = make_controller(policy, task=None)
+    trained = getattr(controller, "trained_task", None)
+    if trained is None or trained.frames == TASK.frames:
+        return make_controller(policy)  # checked against the task itself
+    return make_controller(policy, task=replace(TASK, frames=trained.frames))
 
 
 def env_for(controller, scenario: str) -> UavNavEnv:

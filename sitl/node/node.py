@@ -136,7 +136,8 @@ class SimNode:
         self.cmds = bus.inbox(keys.CMD_VEL, v, maxsize=256)
         goal_inbox = bus.inbox(keys.GOAL, v, maxsize=16)
         self.commander = Commander()
-        self.service = VehicleService(bus, v, self.commander, self.sim.vehicle)
+        self.service = VehicleService(bus, v, self.commander, self.sim.vehicle,
+                                      sensor=self.sim)
         self.rejoin = Rejoin()
         self.gate = CommandGate(self.cmds, self.commander, self.clock, self.rejoin,
                                 c.lockstep_timeout_s, serve=self._serve_requests)

@@ -25,8 +25,9 @@ few milliseconds while it waits), so requests are answered within a step.
   setpoint-loss failsafe in the vehicle's clock.
 * **Parameters** (``skyloop/<vehicle>/params``, ``Parameter``): names of
   :mod:`bus.params`; the sim's are applied at once (see :func:`apply_param`), those of
-  other nodes ignored; invalid ones (unknown, out of range, not finite) are counted in
-  ``param_rejects`` and logged.
+  other nodes ignored but for ``SKY_ICO_RADIUS``, perception's, which the LiDAR follows
+  (its range reaches the new radius: ``EpisodeSim.ico_radius``); invalid ones (unknown,
+  out of range, not finite) are counted in ``param_rejects`` and logged.
 """
 
 from __future__ import annotations
@@ -47,21 +48,24 @@ log = logging.getLogger("skyloop.sim")
 SETPOINT_GRACE_S = 0.05  # s an OFFBOARD request waits for a setpoint still on its way
 
 
-def apply_param(name: str, value: float, commander: Commander, vehicle: Any) -> bool:
-    """Apply a checked sim parameter to the commander and the vehicle's autopilot
-    (``bus.params.ParamDef.sets``; ``vehicle`` None: a commander without a flight model,
-    in tests); False if ``name`` sets nothing of the sim's."""
+def apply_param(name: str, value: float, commander: Commander, vehicle: Any,
+                sensor: Any = None) -> bool:
+    """Apply a checked sim parameter to the commander, the vehicle's autopilot and the
+    LiDAR (``sensor``: the ``EpisodeSim``, whose ``ico_radius`` sets its range)
+    (``bus.params.ParamDef.sets``; ``vehicle``/``sensor`` None: a commander without a
+    flight model, in tests); False if ``name`` sets nothing of the sim's."""
     return params.bind(name, value, {
         "commander": commander.config,
-        "autopilot": vehicle.autopilot if vehicle is not None else None})
+        "autopilot": vehicle.autopilot if vehicle is not None else None,
+        "lidar": sensor})
 
 
 class VehicleService:
     """Requests, status and parameters of one vehicle's commander (module docstring)."""
 
     def __init__(self, bus: Bus, vehicle: str, commander: Commander, vehicle_model: Any,
-                 keepalive_s: float = 1.0) -> None:
-        self.commander, self.vehicle_model = commander, vehicle_model
+                 keepalive_s: float = 1.0, sensor: Any = None) -> None:
+        self.commander, self.vehicle_model, self.sensor = commander, vehicle_model, sensor
         self.keepalive_s = keepalive_s
         self.requests = bus.queryable(keys.COMMAND, vehicle)
         self.params = bus.inbox(keys.PARAMS, vehicle, maxsize=256)
@@ -85,7 +89,7 @@ class VehicleService:
             self.param_rejects += 1
             log.warning("parameter rejected: %s", err)
             return False
-        if apply_param(name, v, self.commander, self.vehicle_model):
+        if apply_param(name, v, self.commander, self.vehicle_model, self.sensor):
             log.info("parameter %s = %g", name, v)
         return True
 

@@ -86,7 +86,9 @@ def cmd_perception(args: PerceptionCommand) -> int:
 
     stop = _stop_event()
     bus = _open_bus(args)
-    node = PerceptionNode(bus, args.vehicle, ObservationConfig(encoding=args.encoding))
+    config = ObservationConfig() if args.encoding is None else \
+        ObservationConfig(encoding=args.encoding)
+    node = PerceptionNode(bus, args.vehicle, config)
     logging.getLogger("skyloop.perception").info("perception up for %s", args.vehicle)
     try:
         while not stop.wait(0.2):
@@ -149,10 +151,11 @@ def cmd_policy(args: PolicyCommand) -> int:
     client_config = _config_or_exit(policy_client_config, args, "policy")
     import torch
 
-    from policy.training.evaluate import make_controller
+    from bus.task import TASK
+    from policy.training.evaluate import stack_controller
 
     torch.set_num_threads(1)
-    controller = make_controller(args.actor)
+    controller = stack_controller(args.actor)
     # Until it flies, SIGTERM interrupts whatever start-up waits on (the heartbeat, arming,
     # the takeoff), as Ctrl-C does (main exits 130 or 143, after the ``finally`` below has
     # closed what was opened); from then on the loop checks ``stop`` every step.
@@ -169,7 +172,9 @@ def cmd_policy(args: PolicyCommand) -> int:
             weights = WeightsFollower(bus, args.vehicle, controller,
                                       emit=lambda line: print(line, flush=True))
         try:
-            node = PolicyNode(bus, controller, args.vehicle, client_config,
+            # the state it was trained on: its frames (the scripted controller: the task's)
+            frames = getattr(controller, "trained_task", TASK).frames
+            node = PolicyNode(bus, controller, args.vehicle, client_config, frames=frames,
                               lockstep=not args.realtime, weights=weights, hold=args.hold)
         except LinkBindError as err:
             raise ValueError(f"{err} (choose another with --api-port)") from None

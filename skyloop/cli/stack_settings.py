@@ -292,10 +292,10 @@ class SimCommand(SimRules, ClockFlags, BusFlags):
 class EncodingFlag:
     """How perception computes the face values (``perception.faces``)."""
 
-    encoding: Literal["distance", "proximity"] = "distance"
+    encoding: Literal["distance", "proximity"] | None = None
     """perception's face values: distance from the face centre (eq. 3.2) or proximity 1 -
     |p| / p_radius; the policy flies only an actor trained with the same (skyloop train
-    --encoding)"""
+    --encoding). Default: skyloop up, the actor's; skyloop perception, distance"""
 
 
 @dataclass(kw_only=True)

@@ -5,7 +5,8 @@ its GCS link, the sim's :class:`~sitl.node.vehicle_service.VehicleService` (what
 sim's parameters) and a :class:`~perception.node.PerceptionNode` (``SKY_ICO_RADIUS``),
 each on its own Zenoh session. Checked: when the vehicle appears the bridge sends its
 chosen values (the file's and ``--param`` overrides, which are not persisted); a PARAM_SET from the
-ground station is echoed, persisted and applied by the sim and by perception; bad
+ground station is echoed, persisted and applied by the sim (SKY_ICO_RADIUS: its LiDAR's
+range) and by perception; bad
 values on the bus are counted by perception, never applied.
 """
 
@@ -57,7 +58,10 @@ def test_parameters_flow_from_ground_station_to_sim_and_perception(tmp_path):
     seen: list[tuple[str, float]] = []
     buses[3].subscribe(keys.PARAMS, "uav1", lambda msg: seen.append((msg.name, msg.value)))
     commander = Commander()
-    service = VehicleService(buses[1], "uav1", commander, None)
+    from sitl.episode import EpisodeSim
+
+    sim = EpisodeSim()  # the sim's LiDAR follows SKY_ICO_RADIUS
+    service = VehicleService(buses[1], "uav1", commander, None, sensor=sim)
     thread.start()
     try:
         t = [0.0]
@@ -95,6 +99,7 @@ def test_parameters_flow_from_ground_station_to_sim_and_perception(tmp_path):
                  "the sim applied GF_MAX_HOR_DIST", poll=0.05)
         wait_for(lambda: perception.config.radius == 6.0, 5.0, "perception's new radius")
         assert perception.ico.radius == 6.0
+        assert sim.lidar.config.max_range == 6.5  # the LiDAR reaches the new radius
         saved = json.loads(pfile.read_text())["params"]
         # The file holds what a ground station set, earlier runs included; no override.
         assert saved == {"GF_MAX_HOR_DIST": 120.0, "SKY_ICO_RADIUS": 6.0, "MPC_Z_VEL_MAX": 1.5}

@@ -71,10 +71,12 @@ def test_parameters_hold_the_only_defaults_and_set_the_fields_they_name():
     from bus import params
     from perception.observation import ObservationConfig
     from sitl.commander.types import CommanderConfig
+    from sitl.episode import EpisodeSim
     from sitl.flight.vehicle import VehicleConfig
 
-    cfg, vehicle = CommanderConfig(), VehicleConfig()
-    owners = {"commander": cfg, "autopilot": vehicle, "observation": ObservationConfig()}
+    cfg, vehicle, sim = CommanderConfig(), VehicleConfig(), EpisodeSim()
+    owners = {"commander": cfg, "autopilot": vehicle, "observation": ObservationConfig(),
+              "lidar": sim}
     for p in params.PARAMS:
         assert p.sets, p.name  # every parameter says what it sets
         for target in p.sets:  # ... and that field's default is the parameter's
@@ -85,6 +87,31 @@ def test_parameters_hold_the_only_defaults_and_set_the_fields_they_name():
     assert params.bind("MPC_XY_VEL_MAX", 3.0, {"commander": cfg, "autopilot": None})
     assert cfg.rtl_speed == 3.0
     assert not params.bind("SKY_ICO_RADIUS", 5.0, {"commander": cfg, "autopilot": None})
+    assert params.bind("SKY_ICO_RADIUS", 6.0, {"commander": cfg, "lidar": sim})
+    assert sim.ico_radius == 6.0 and sim.lidar.config.max_range == 6.5
+
+
+def test_the_lidar_reaches_the_radius_the_observation_is_made_at():
+    """SKY_ICO_RADIUS set on the sim (``EpisodeSim.ico_radius``) gives the LiDAR the range
+    a policy trained at that radius was trained with (radius + 0.5 m, as ``skyloop eval``
+    flies it), for the world in use and those built later; its returns reach past 4.5 m."""
+    import numpy as np
+
+    from policy.training.evaluate import env_for, make_controller
+    from sitl.episode import LIDAR_MARGIN, EpisodeSim
+
+    sim = EpisodeSim()
+    sim.reset(np.random.default_rng(3))
+    near = np.linalg.norm(sim.scan(), axis=1)
+    assert near.max() <= 4.5 + 1e-6
+    sim.ico_radius = 6.0
+    far = np.linalg.norm(sim.scan(), axis=1)
+    assert 4.5 < far.max() <= 6.5 + 1e-6
+    sim.use_world("city")  # a world built after the change
+    assert sim.lidar.config.max_range == 6.5
+    # the same range as the in-process evaluation gives an actor of that radius
+    assert env_for(make_controller("scripted"), "valley").sim.config.lidar_max_range == \
+        4.0 + LIDAR_MARGIN
 
 
 def test_off_task_names_parameters_the_policy_was_not_trained_under():
