@@ -100,15 +100,13 @@ class EpisodeSim:
     def ico_radius(self, radius: float) -> None:
         """Make the LiDAR reach an observation of radius ``radius`` (``SKY_ICO_RADIUS``,
         ``bus.params``): its range becomes ``radius + LIDAR_MARGIN``, for every world
-        built and to come; the scan in flight is unchanged until the next one."""
+        built and to come, from the next scan on (its noise stream goes on)."""
         max_range = float(radius) + LIDAR_MARGIN
         if math.isclose(max_range, self.config.lidar_max_range):
             return
         self.config = replace(self.config, lidar_max_range=max_range)
-        for name, (world, lidar) in self._worlds.items():
-            self._worlds[name] = (world, Lidar(world, replace(lidar.config,
-                                                                max_range=max_range)))
-        self.world, self.lidar = self._worlds[self.world_name]
+        for _, lidar in self._worlds.values():
+            lidar.set_max_range(max_range)
 
     def reset(self, rng: np.random.Generator, goal: np.ndarray | None = None) -> None:
         """Start a new episode with randomness drawn from ``rng`` (see module docstring);

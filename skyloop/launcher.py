@@ -28,7 +28,8 @@ goals the policy hovers (``policy --hold``); until stopped by default. ``--param
 NAME=VALUE`` goes to the sim (``bus/params.py``). The stack makes the state the actor was
 trained on (:func:`as_trained`: its recorded icosahedron radius as ``SKY_ICO_RADIUS``, which
 perception's faces and the sim's LiDAR range follow, its encoding; the policy node stacks its
-frames), unless ``--param SKY_ICO_RADIUS`` or ``--encoding`` says otherwise. When the sim
+frames), unless ``--param SKY_ICO_RADIUS`` or ``--encoding`` says otherwise (a radius a
+ground station saved in the parameter file gives way to the actor's). When the sim
 finishes, the others get SIGTERM (the recorder closes its MCAP), then SIGKILL after the
 grace period (a node that needed it is named: "force-killed NAME"; none should). If any child
 dies first, or on Ctrl-C, every child is stopped within 5 s and the launcher exits non-zero,

@@ -32,7 +32,7 @@ core, this machine: full range ~6.2 M rays/s Embree vs ~5 M numba; 4.5 m range
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -122,6 +122,12 @@ class Lidar:
         if self.config.engine != "auto":
             return self.config.engine
         return "embree" if self.config.max_range > AUTO_EMBREE_ABOVE else "numba"
+
+    def set_max_range(self, max_range: float) -> None:
+        """Reach ``max_range`` from the next scan on (the rays, the world's structures and
+        the noise stream are kept; the engine is chosen again for the range)."""
+        self.config = replace(self.config, max_range=float(max_range))
+        self.engine = self._pick_engine()
 
     def reseed(self, seed: int) -> None:
         """Restart the range-noise stream."""

@@ -54,10 +54,11 @@ def apply_param(name: str, value: float, commander: Commander, vehicle: Any,
     LiDAR (``sensor``: the ``EpisodeSim``, whose ``ico_radius`` sets its range)
     (``bus.params.ParamDef.sets``; ``vehicle``/``sensor`` None: a commander without a
     flight model, in tests); False if ``name`` sets nothing of the sim's."""
-    return params.bind(name, value, {
-        "commander": commander.config,
-        "autopilot": vehicle.autopilot if vehicle is not None else None,
-        "lidar": sensor})
+    owners = {"commander": commander.config,
+              "autopilot": vehicle.autopilot if vehicle is not None else None}
+    if sensor is not None:  # else SKY_ICO_RADIUS sets nothing of this sim's
+        owners["lidar"] = sensor
+    return params.bind(name, value, owners)
 
 
 class VehicleService:

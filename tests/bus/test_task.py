@@ -93,25 +93,25 @@ def test_parameters_hold_the_only_defaults_and_set_the_fields_they_name():
 
 def test_the_lidar_reaches_the_radius_the_observation_is_made_at():
     """SKY_ICO_RADIUS set on the sim (``EpisodeSim.ico_radius``) gives the LiDAR the range
-    a policy trained at that radius was trained with (radius + 0.5 m, as ``skyloop eval``
-    flies it), for the world in use and those built later; its returns reach past 4.5 m."""
+    a policy trained at that radius was trained with (``--lidar-max-range 6.5`` for 6 m):
+    the next scan is the very scan of a sim built with that range (same episode, same
+    noise stream), its returns reach past 4.5 m, and worlds built later get it too."""
     import numpy as np
 
-    from policy.training.evaluate import env_for, make_controller
-    from sitl.episode import LIDAR_MARGIN, EpisodeSim
+    from sitl.episode import EpisodeConfig, EpisodeSim
 
-    sim = EpisodeSim()
+    sim, trained = EpisodeSim(), EpisodeSim(EpisodeConfig(lidar_max_range=6.5))
     sim.reset(np.random.default_rng(3))
     near = np.linalg.norm(sim.scan(), axis=1)
     assert near.max() <= 4.5 + 1e-6
-    sim.ico_radius = 6.0
-    far = np.linalg.norm(sim.scan(), axis=1)
-    assert 4.5 < far.max() <= 6.5 + 1e-6
+    sim.reset(np.random.default_rng(3))  # the episode again (the noise stream restarts)
+    trained.reset(np.random.default_rng(3))
+    sim.ico_radius = 6.0  # between reset and the first scan: the stream is kept
+    far = sim.scan()
+    np.testing.assert_array_equal(far, trained.scan())
+    assert 4.5 < np.linalg.norm(far, axis=1).max() <= 6.5 + 1e-6
     sim.use_world("city")  # a world built after the change
     assert sim.lidar.config.max_range == 6.5
-    # the same range as the in-process evaluation gives an actor of that radius
-    assert env_for(make_controller("scripted"), "valley").sim.config.lidar_max_range == \
-        4.0 + LIDAR_MARGIN
 
 
 def test_off_task_names_parameters_the_policy_was_not_trained_under():

@@ -57,6 +57,7 @@ def test_parameters_from_the_bus(free_sim) -> None:
     assert (c.setpoint_timeout, c.rtl_speed, c.geofence) == (2.5, 1.0, 25.0)
     assert node.sim.vehicle.autopilot.max_speed_xy == 1.0
     assert node.service.param_rejects == 3  # out of range, unknown, NaN; perception's ok
+    assert node.sim.lidar.config.max_range == 5.5  # SKY_ICO_RADIUS 5: the LiDAR reaches it
 
 
 def test_goal_from_the_bus_starts_a_new_episode(free_sim) -> None:
