@@ -17,7 +17,8 @@
 #   queue started beside a running grid waits for it); the machine never idles between
 #   grids. Log: ../grid-queue.log. Every argument is checked before anything starts.
 #   `run` (same arguments as start) is one grid in the foreground; queue calls it.
-# collect: copies every finished trial (result.json) of the worktree's OUT into main's,
+# collect: copies every finished trial (result.json) of the worktree's OUT into main's
+#   (a file newer on main, such as a selection.jsonl validation appended to, is kept),
 #   without checkpoints or TensorBoard events (experiments/.gitignore keeps them out of
 #   git anyway), with runs.json and grid.toml; then write the report on main:
 #   skyloop experiment report OUT --eval-episodes 200
@@ -146,7 +147,7 @@ collect)
         dest=$out/$(basename "$trial")
         mkdir -p "$dest"
         (cd "$trial" && tar cf - --exclude=checkpoint.pt --exclude=checkpoint.pt.tmp \
-            --exclude=tb .) | (cd "$dest" && tar xf -)
+            --exclude=tb .) | (cd "$dest" && tar xf - --keep-newer-files --warning=no-ignore-newer)
         n=$((n + 1))
     done
     for f in runs.json grid.toml; do

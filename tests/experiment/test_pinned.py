@@ -72,6 +72,18 @@ def test_collect_copies_finished_trials_without_checkpoints(tmp_path):
     got = sorted(str(p.relative_to(home)) for p in home.rglob("*") if p.is_file())
     assert got == ["grid.toml", "runs.json", "valley-td3+abr-s0/actor.pt",
                    "valley-td3+abr-s0/episodes.csv", "valley-td3+abr-s0/result.json"]
+    # a file main has newer (validation appended to it since) survives a second collect;
+    # one the worktree has newer is brought home
+    log = home / "valley-td3+abr-s0" / "selection.jsonl"
+    (done / "selection.jsonl").write_text("row 1\n")
+    (done / "actor.pt").write_bytes(b"actor, later")
+    os.utime(done / "selection.jsonl", (time.time() - 60, time.time() - 60))
+    os.utime(done / "actor.pt", (time.time() + 60, time.time() + 60))  # tar: 1-s times
+    log.write_text("row 1\nrow 2\n")
+    r = pinned(main, "collect", "HEAD", "experiments/g/")
+    assert r.returncode == 0, r.stderr
+    assert log.read_text() == "row 1\nrow 2\n"
+    assert (home / "valley-td3+abr-s0" / "actor.pt").read_bytes() == b"actor, later"
 
 
 def test_bad_arguments_are_one_line_and_exit_2(tmp_path):
