@@ -388,9 +388,10 @@ def test_realtime_run_reports_latency(tmp_path):
 
 
 def test_an_actor_that_outputs_nan_stops_the_stack_and_says_why(tmp_path):
-    """Not a silent run of timeouts: the policy refuses the actor at load time (and in
-    flight after a few non-finite actions: policy.nodes.node.MAX_BAD_ACTIONS), and the launcher
-    exits non-zero naming it."""
+    """Not a silent run of timeouts: the launcher, reading the actor for the state it was
+    trained on (skyloop.launcher.as_trained), refuses it before any node starts, in one line
+    naming the file (the policy node refuses such an actor at load time too, and in flight
+    after a few non-finite actions: policy.nodes.node.MAX_BAD_ACTIONS)."""
     import torch
 
     from policy.algorithms.td3 import TD3, TD3Config
@@ -401,9 +402,14 @@ def test_an_actor_that_outputs_nan_stops_the_stack_and_says_why(tmp_path):
     agent.save_actor(tmp_path / "nan.pt")
     out = subprocess.run(up_args("--episodes", "1", "--policy", str(tmp_path / "nan.pt")),
                          cwd=ROOT, capture_output=True, text=True, timeout=180)
-    assert out.returncode == 1, out.stdout + out.stderr
-    assert "node 'policy' exited" in out.stderr and "NaN or inf" in out.stderr, out.stderr
-    assert "forked after opening" not in out.stdout + out.stderr
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert out.stderr.count("\n") == 1 and "nan.pt: the actor outputs" in out.stderr \
+        and "NaN or inf" in out.stderr, out.stderr
+    assert "started" not in out.stdout, out.stdout
+    node = subprocess.run([sys.executable, "-m", "skyloop", "policy", "--policy",
+                           str(tmp_path / "nan.pt")], cwd=ROOT, capture_output=True,
+                          text=True, timeout=180)  # the node alone, as compose starts it
+    assert node.returncode == 2 and "NaN or inf" in node.stderr, node.stderr
 
 
 HOLD, LAND, CRASH, OFFBOARD = ("Failsafe: setpoints lost, holding", "Failsafe: landing",
