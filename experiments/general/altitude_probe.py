@@ -22,8 +22,9 @@ import json
 from pathlib import Path
 
 import numpy as np
+from timeout_paths import fly_episode
 
-from policy.training.evaluate import EVAL_SEED, env_for, make_controller
+from policy.training.evaluate import env_for, make_controller
 from sitl.world.families import eval_worlds
 
 FAMILIES = ("valley", "dynamic", "forest", "city")
@@ -37,15 +38,10 @@ def fly(actor: str, family: str, worlds: int, episodes: int) -> list[dict]:
     env = env_for(controller, names[0])
     rows = []
     for i in range(episodes):
-        env.sim.use_world(names[i % len(names)])
-        state, _ = env.reset(seed=EVAL_SEED + i)
-        while True:
-            state, _, terminated, truncated, info = env.step(controller(state))
-            if terminated or truncated:
-                break
+        outcome = fly_episode(env, controller, names[i % len(names)], i)
         path = np.array(env.path)
         ground = np.asarray(env.sim.world.terrain_height(path[:, 0], path[:, 1]))
-        rows.append({"episode": i, "outcome": info["record"].outcome or "timeout",
+        rows.append({"episode": i, "outcome": outcome,
                      "max_altitude": float(path[:, 2].max()),
                      "max_ground_under": float(ground.max())})
     env.close()

@@ -58,6 +58,11 @@ def positive_int(text: str) -> int:
     return value
 
 
+def count_or_zero(text: str) -> int:
+    """argparse type: 0 (a round left out) or a positive integer."""
+    return 0 if text == "0" else positive_int(text)
+
+
 def margin(rates: dict[str, float]) -> float:
     """The worst family's success minus its goal (>= 0: every goal met)."""
     return min(rates[f] - GOALS[f] for f in GOALS)
@@ -190,13 +195,13 @@ def plot(run: Path, rows: list[dict], best: int, out: Path, episodes: int,
 def add_round_flags(p: argparse.ArgumentParser) -> None:
     """--screen, --keep, --final and --final-keep (``screened``), for this script and
     ship.py."""
-    p.add_argument("--screen", type=lambda t: positive_int(t) if t != "0" else 0,
+    p.add_argument("--screen", type=count_or_zero,
                    default=20, help=(
         "first fly every actor this many episodes per family, and only the --keep best "
         "the full --episodes (0: every actor the full --episodes)"))
     p.add_argument("--keep", type=positive_int, default=4,
                    help="actors the screen passes on")
-    p.add_argument("--final", type=lambda t: positive_int(t) if t != "0" else 0,
+    p.add_argument("--final", type=count_or_zero,
                    default=200, help=(
         "then fly the --final-keep best of those this many episodes per family and pick "
         "on them (0, or not above --episodes: pick on --episodes)"))

@@ -25,6 +25,17 @@ from policy.training.evaluate import EVAL_SEED, env_for, make_controller  # noqa
 from sitl.world.families import eval_worlds  # noqa: E402
 
 
+def fly_episode(env, controller, world: str, i: int) -> str:
+    """Episode ``i`` deterministically on ``world`` (reset seed 1,000,000,000 + i, as
+    ``skyloop eval``); its outcome. The path stays in ``env.path``."""
+    env.sim.use_world(world)
+    state, _ = env.reset(seed=EVAL_SEED + i)
+    while True:
+        state, _, terminated, truncated, info = env.step(controller(state))
+        if terminated or truncated:
+            return info["record"].outcome or "timeout"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("actor", type=Path)
@@ -39,13 +50,7 @@ def main() -> None:
     env = env_for(controller, names[0])
     shown = []
     for i in range(args.episodes):
-        env.sim.use_world(names[i % len(names)])
-        state, _ = env.reset(seed=EVAL_SEED + i)
-        while True:
-            state, _, terminated, truncated, info = env.step(controller(state))
-            if terminated or truncated:
-                break
-        if (info["record"].outcome or "timeout") != "timeout":
+        if fly_episode(env, controller, names[i % len(names)], i) != "timeout":
             continue
         path, goal, world = np.array(env.path), env.sim.goal.copy(), env.sim.world
         d = np.linalg.norm(path - goal, axis=1)
