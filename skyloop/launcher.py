@@ -78,7 +78,7 @@ from typing import Any
 from bus.node import Bus
 from bus.session import SessionConfig
 from bus.task import TASK
-from skyloop.cli.stack_settings import UpCommand
+from skyloop.cli.stack_settings import UpCommand, parse_params
 from skyloop.placement import Placement, plan
 from skyloop.signals import Stopped, block_until_started, stop_on_sigterm
 
@@ -375,8 +375,7 @@ def as_trained(args: UpCommand) -> tuple[UpCommand, str | None]:
     actor = ActorController(args.actor, task=None)  # torch: read once, here
     trained, observation = actor.trained_task, actor.trained_observation
     out, said = copy.copy(args), []
-    given = {p.partition("=")[0].strip() for p in args.param}
-    if "SKY_ICO_RADIUS" not in given:
+    if "SKY_ICO_RADIUS" not in parse_params(args.param):
         out.param = (*args.param, f"SKY_ICO_RADIUS={trained.ico_radius:g}")
         if trained.ico_radius != default("SKY_ICO_RADIUS"):
             said.append(f"icosahedron radius {trained.ico_radius:g} m (SKY_ICO_RADIUS; "

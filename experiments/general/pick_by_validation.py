@@ -63,6 +63,11 @@ def count_or_zero(text: str) -> int:
     return 0 if text == "0" else positive_int(text)
 
 
+def last_round(episodes: int, final: int) -> int:
+    """Episodes per family of the round the pick is made on (``screened``)."""
+    return final if final > episodes else episodes
+
+
 def margin(rates: dict[str, float]) -> float:
     """The worst family's success minus its goal (>= 0: every goal met)."""
     return min(rates[f] - GOALS[f] for f in GOALS)
@@ -131,7 +136,7 @@ def choose(run: Path, episodes: int = 60, worlds: int = 20, screen: int = 0,
     """Validate (``screened``), pick (``pick``, on the last round's rows) and draw
     (``plot``, over the first round's rows: every actor) one run; the pick."""
     seen, rows = screened(run, episodes, worlds, screen, keep, final, final_keep)
-    choice = pick(run, rows, final if final > episodes else episodes, worlds)
+    choice = pick(run, rows, last_round(episodes, final), worlds)
     if figure is not None:
         plot(run, seen, choice["episode"], figure,
              screen if 0 < screen < episodes else episodes, worlds)

@@ -29,7 +29,7 @@ from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from pathlib import Path
 
-from pick_by_validation import GOALS, add_round_flags, choose, margin, positive_int
+from pick_by_validation import GOALS, add_round_flags, choose, last_round, margin, positive_int
 
 from policy.shipped import SHIPPED, SHIPPED_DIR
 
@@ -148,7 +148,7 @@ def main() -> None:
     screening = (f", every actor first {args.screen} episodes per family and the "
                  f"{args.keep} best of each trial the full {args.episodes}"
                  if 0 < args.screen < args.episodes else "")
-    final = args.final if args.final > args.episodes else args.episodes
+    final = last_round(args.episodes, args.final)
     if final > args.episodes:
         screening += (f", then the {args.final_keep} best of those {final} episodes per "
                       f"family, on which the pick is made")
